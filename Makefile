@@ -1,0 +1,33 @@
+# deckland: two commands do all set-up (README): `make run` and `make test`.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.deckland-installed
+PKGS := $(sort $(wildcard src/*/setup.py))
+SCENARIO ?= paper
+
+.PHONY: setup run test lint golden bench clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+
+# Re-installs only when requirements.txt or a package's setup.py/package.xml changed.
+$(STAMP): $(PY) requirements.txt $(PKGS) $(wildcard src/*/package.xml)
+	$(PY) -m pip install --quiet -r requirements.txt
+	$(PY) -m pip install --quiet --no-deps $(foreach p,$(PKGS),-e $(dir $(p)))
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+run: setup
+	$(VENV)/bin/deckland up --scenario $(SCENARIO) --record runs/latest
+
+test: setup
+	$(PY) -m pytest test
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(VENV) runs build install log .pytest_cache

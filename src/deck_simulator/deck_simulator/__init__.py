@@ -1,0 +1,3 @@
+"""Heaving-deck and quadcopter simulator: physics, sensors, scenarios, and a hardware-
+emulating node.
+"""

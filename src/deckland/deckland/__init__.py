@@ -1,0 +1,1 @@
+"""deckland command line: closed-loop runs, campaigns, orchestration, topic and bag tools."""

@@ -1,0 +1,28 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'deckland'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    package_data={package_name: ['data/*.yaml']},
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='deckland developers',
+    maintainer_email='dev@deckland.invalid',
+    description='deckland command line: closed-loop runs, campaigns, orchestration, topic and bag tools.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'deckland = deckland.cli:main',
+        ],
+    },
+)

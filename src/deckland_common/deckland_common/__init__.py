@@ -1,0 +1,3 @@
+"""Shared pure helpers (frames, parameter specs) and thin rclpy utilities used by every
+deckland node.
+"""

@@ -1,0 +1,129 @@
+"""Frame conventions shared by every deckland package (pure, no rclpy).
+
+ROS side (REP-103): world frame ``map`` is ENU (x east, y north, z up); the body frame
+``base_link`` is FLU (x forward, y left, z up). Attitude is the intrinsic Z-Y-X sequence
+(yaw ψ about world z, then pitch θ about the new y, then roll φ about body x), so the
+body-to-world rotation is ``R = Rz(ψ) Ry(θ) Rx(φ)``. Its third column,
+``R e3 = [cφ sθ cψ + sφ sψ, cφ sθ sψ − sφ cψ, cφ cθ]``, is exactly the thrust direction in the
+paper's model (2). Consequences worth remembering:
+
+* positive pitch (FLU) tilts the nose *down* and accelerates the vehicle forward;
+* positive roll (FLU) lowers the right side and accelerates the vehicle to the right (−y);
+* yaw 0 points the nose east; yaw π/2 points it north.
+
+NED/FRD exists only at the MAVLink boundary: ``roll_frd = roll_flu``, ``pitch_frd = −pitch_flu``,
+``yaw_ned = π/2 − yaw_enu``; positions and velocities map ``(x, y, z)_ned = (y, x, −z)_enu``.
+
+Camera optical frame (``camera_optical``, REP-103 optical convention): x right in the image,
+y down in the image, z out of the lens. The default down-looking mount has the image top toward
+the nose, so optical x = body −y, optical y = body −x, optical z = body −z.
+"""
+
+from __future__ import annotations
+
+import math
+
+Vec3 = tuple[float, float, float]
+Mat3 = tuple[Vec3, Vec3, Vec3]
+
+
+def rot_body_to_world(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Mat3:
+    """Rotation matrix R = Rz(ψ) Ry(θ) Rx(φ) taking FLU body vectors to ENU world vectors."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return (
+        (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+        (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+        (-sp, cp * sr, cp * cr),
+    )
+
+
+def mat_vec(m: Mat3, v: Vec3) -> Vec3:
+    """m · v for a 3×3 tuple matrix."""
+    return (
+        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
+        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
+        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+    )
+
+
+def mat_t_vec(m: Mat3, v: Vec3) -> Vec3:
+    """mᵀ · v (world-to-body when m is body-to-world)."""
+    return (
+        m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
+        m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
+        m[0][2] * v[0] + m[1][2] * v[1] + m[2][2] * v[2],
+    )
+
+
+def world_to_body_xy(x: float, y: float, yaw_rad: float) -> tuple[float, float]:
+    """Rotate a horizontal ENU vector into the yaw-only (heading) frame, FLU axes."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return c * x + s * y, -s * x + c * y
+
+
+def body_to_world_xy(x: float, y: float, yaw_rad: float) -> tuple[float, float]:
+    """Rotate a horizontal heading-frame (FLU) vector into ENU."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return c * x - s * y, s * x + c * y
+
+
+def euler_to_quaternion(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[
+        float, float, float, float]:
+    """Z-Y-X Euler angles to a unit quaternion (w, x, y, z) of the same rotation."""
+    cr, sr = math.cos(roll_rad / 2.0), math.sin(roll_rad / 2.0)
+    cp, sp = math.cos(pitch_rad / 2.0), math.sin(pitch_rad / 2.0)
+    cy, sy = math.cos(yaw_rad / 2.0), math.sin(yaw_rad / 2.0)
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    )
+
+
+def quaternion_to_euler(w: float, x: float, y: float, z: float) -> Vec3:
+    """Unit quaternion (w, x, y, z) to Z-Y-X Euler angles (roll, pitch, yaw) in radians."""
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    sinp = max(-1.0, min(1.0, 2.0 * (w * y - z * x)))
+    pitch = math.asin(sinp)
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def wrap_pi(angle_rad: float) -> float:
+    """Wrap an angle to [−π, π)."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+# --- MAVLink boundary only -------------------------------------------------------------------
+
+def enu_to_ned(x: float, y: float, z: float) -> Vec3:
+    """ENU vector → NED vector (positions, velocities, accelerations)."""
+    return y, x, -z
+
+
+def ned_to_enu(n: float, e: float, d: float) -> Vec3:
+    """NED vector → ENU vector."""
+    return e, n, -d
+
+
+def flu_to_frd(x: float, y: float, z: float) -> Vec3:
+    """FLU body vector → FRD body vector."""
+    return x, -y, -z
+
+
+def frd_to_flu(x: float, y: float, z: float) -> Vec3:
+    """FRD body vector → FLU body vector."""
+    return x, -y, -z
+
+
+def euler_enu_flu_to_ned_frd(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Vec3:
+    """Attitude of FLU in ENU → attitude of FRD in NED (Z-Y-X Euler both sides)."""
+    return roll_rad, -pitch_rad, wrap_pi(math.pi / 2.0 - yaw_rad)
+
+
+def euler_ned_frd_to_enu_flu(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Vec3:
+    """Attitude of FRD in NED → attitude of FLU in ENU (Z-Y-X Euler both sides)."""
+    return roll_rad, -pitch_rad, wrap_pi(math.pi / 2.0 - yaw_rad)

@@ -1,0 +1,92 @@
+"""Thin rclpy helpers shared by every deckland node: parameters, QoS, and ``main()``.
+
+Nodes stay adapters: declare the :class:`~deckland_common.params.ParamSpec` rows, convert
+messages to the pure cores' dataclasses and back, and publish. Nothing algorithmic lives here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+import math
+import sys
+from typing import Any
+
+from rcl_interfaces.msg import ParameterDescriptor
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+from deckland_common.params import ParameterError, ParamSpec, validate
+
+#: High-rate sensor streams (camera blocks, lidar, IMU): best effort, keep last 5.
+SENSOR_QOS = qos_profile_sensor_data
+#: Commands and estimates: reliable, keep last 10.
+RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                          history=HistoryPolicy.KEEP_LAST)
+#: Latched state (mode, scenario, outcome): reliable + transient local, depth 1.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_LAST,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def declare_and_validate(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]:
+    """Declare each spec with its description, read the values, validate them all.
+
+    Raises :class:`ParameterError` on the first bad value.
+    """
+    specs = list(specs)
+    values = {}
+    for spec in specs:
+        descriptor = ParameterDescriptor(description=spec.description + (
+            f' ({spec.rule})' if spec.rule else ''))
+        values[spec.name] = node.declare_parameter(spec.name, spec.default,
+                                                   descriptor).value
+    return validate(values, specs)
+
+
+def stamp_to_s(stamp) -> float:
+    """builtin_interfaces/Time → seconds (float)."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def s_to_stamp(t_s: float, stamp) -> Any:
+    """Fill a builtin_interfaces/Time in place from seconds; returns it."""
+    sec = math.floor(t_s)
+    stamp.sec = int(sec)
+    stamp.nanosec = min(round((t_s - sec) * 1e9), 999_999_999)
+    return stamp
+
+
+def all_finite(*values: float) -> bool:
+    """True when every value is a finite float (the gate in front of every core)."""
+    return all(math.isfinite(v) for v in values)
+
+
+def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int:
+    """Standard Jazzy ``main()`` body: init, build, spin, clean shutdown.
+
+    A :class:`ParameterError` while building the node is printed as a clear message and the
+    process exits with status 2 (never a silent default).
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except ParameterError as exc:
+        print(f'[FATAL] {exc}', file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

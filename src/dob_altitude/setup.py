@@ -1,0 +1,28 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'dob_altitude'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    package_data={package_name: ['data/*.yaml']},
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='deckland developers',
+    maintainer_email='dev@deckland.invalid',
+    description='Disturbance-observer altitude controller (paper eqs. 6, 13-19) and a PID baseline, with its ROS 2 node.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'dob_altitude_node = dob_altitude.node:main',
+        ],
+    },
+)

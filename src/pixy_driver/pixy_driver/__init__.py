@@ -1,0 +1,1 @@
+"""CMUcam5 Pixy (IR-LOCK) block-protocol driver over serial or UDP."""

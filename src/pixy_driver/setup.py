@@ -1,0 +1,28 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'pixy_driver'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+    ],
+    package_data={package_name: ['data/*.yaml']},
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='deckland developers',
+    maintainer_email='dev@deckland.invalid',
+    description='CMUcam5 Pixy (IR-LOCK) block-protocol driver over serial or UDP.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'pixy_driver_node = pixy_driver.node:main',
+        ],
+    },
+)

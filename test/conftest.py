@@ -1,0 +1,43 @@
+"""Session-wide isolation for tests that start ROS nodes.
+
+A random ROS_DOMAIN_ID per test session and localhost-only discovery are set before anything
+imports rclpy, so parallel CI jobs and developers' machines never see each other's topics.
+"""
+
+import os
+import random
+import sys
+import threading
+
+os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 100))
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
+
+import pytest
+
+sys.dont_write_bytecode = True
+
+
+@pytest.fixture
+def ros_context():
+    """A private rclpy context with a multi-threaded executor spinning in a thread.
+
+    Yields ``(context, executor)``; add nodes with ``executor.add_node(node)``. Teardown
+    shuts the executor and the context down and joins the thread.
+    """
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    executor = MultiThreadedExecutor(context=context)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        yield context, executor
+    finally:
+        executor.shutdown(timeout_sec=2.0)
+        for node in list(executor.get_nodes()):
+            node.destroy_node()
+        context.try_shutdown()
+        thread.join(timeout=5.0)

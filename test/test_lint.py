@@ -1,0 +1,27 @@
+"""The suite runs ruff over the whole workspace (configuration in pyproject.toml)."""
+
+import pathlib
+import shutil
+import subprocess
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_ruff_clean():
+    ruff = shutil.which('ruff') or str(pathlib.Path(sys.executable).with_name('ruff'))
+    result = subprocess.run([ruff, 'check', str(ROOT)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_no_core_module_imports_rclpy():
+    """Pure cores stay pure: only node adapters and tools may import rclpy."""
+    allowed = ('node.py', 'ros_node.py')
+    offenders = []
+    for path in (ROOT / 'src').rglob('*.py'):
+        if path.name in allowed or 'deckland/deckland' in path.as_posix():
+            continue
+        text = path.read_text()
+        if 'import rclpy' in text or 'from rclpy' in text:
+            offenders.append(str(path.relative_to(ROOT)))
+    assert not offenders, f'core modules import rclpy: {offenders}'
