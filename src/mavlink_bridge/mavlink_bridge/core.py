@@ -1,0 +1,479 @@
+"""Decision logic of the MAVLink bridge (pure, time-driven, no sockets, no rclpy).
+
+The ROS node feeds every event with the receive time ``t_s`` (any monotonic origin) and sends
+what the core returns. The core decides:
+
+* link state: the autopilot is "up" while its HEARTBEAT is younger than ``link_timeout_s``;
+* input freshness: a SET_ATTITUDE_TARGET is produced only on a *new* thrust command (the
+  paper's u_z, (16), in newtons) combined with an attitude command that is itself younger than
+  ``input_timeout_s``. When either input goes stale the stream simply stops, so the autopilot's
+  own offboard-loss failsafe (PX4 ``COM_OF_LOSS_T``, ArduPilot's 1 s guided-attitude timeout)
+  takes over; old setpoints are never repeated;
+* the offboard entry sequence: OFFBOARD (PX4) / GUIDED_NOGPS (ArduPilot) is requested only after
+  setpoints have streamed continuously (gaps < ``max_stream_gap_s``, i.e. > 2 Hz) for
+  ``offboard_warmup_s`` (> 1 s, as PX4 requires);
+* arming and mode requests with retries until the HEARTBEAT confirms them, COMMAND_ACK
+  handling, and the disarm when ``control/enabled`` goes False;
+* periodic MAV_CMD_SET_MESSAGE_INTERVAL requests for the telemetry it needs.
+
+Bad input (NaN/inf, zero quaternions, out-of-order stamps) is counted in :attr:`rejected` and
+never changes the state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+
+from deckland_common.frames import quaternion_to_euler
+
+from mavlink_bridge.conversions import (
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    ThrustCalibration,
+    do_set_mode_params,
+    euler_enu_to_quat_ned,
+    landed_from_extended_sys_state,
+    mode_name,
+    quat_enu_flu_to_ned_frd,
+    quat_normalize,
+)
+
+MAV_CMD_DO_SET_MODE = 176
+MAV_CMD_COMPONENT_ARM_DISARM = 400
+MAV_CMD_NAV_TAKEOFF = 22
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_RESULT_ACCEPTED = 0
+MAV_RESULT_TEMPORARILY_REJECTED = 1
+MAV_RESULT_IN_PROGRESS = 5
+MAV_AUTOPILOT_INVALID = 8
+MAV_TYPE_GCS = 6
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+
+MSG_ID = {'HEARTBEAT': 0, 'SCALED_IMU': 26, 'ATTITUDE': 30, 'LOCAL_POSITION_NED': 32,
+          'HIGHRES_IMU': 105, 'DISTANCE_SENSOR': 132, 'EXTENDED_SYS_STATE': 245}
+#: ArduCopter GUID_OPTIONS bit 3 (value 8): SET_ATTITUDE_TARGET.thrust is thrust, not climb rate.
+GUID_OPTIONS_THRUST_BIT = 8
+
+
+@dataclass(frozen=True, slots=True)
+class BridgeParams:
+    """Bridge timing and autopilot choice (validated at construction)."""
+
+    autopilot: str = 'px4'                 # 'px4' | 'ardupilot'
+    input_timeout_s: float = 0.2           # max age of thrust and attitude commands
+    link_timeout_s: float = 3.0            # autopilot HEARTBEAT age that means link lost
+    stream_rate_hz: float = 100.0          # max SET_ATTITUDE_TARGET rate
+    offboard_warmup_s: float = 1.2         # streaming time before the mode request (> 1 s)
+    max_stream_gap_s: float = 0.5          # larger gaps restart the warm-up (2 Hz minimum)
+    heartbeat_period_s: float = 1.0
+    command_retry_s: float = 0.5
+    command_timeout_s: float = 5.0
+    interval_refresh_s: float = 10.0       # re-send SET_MESSAGE_INTERVAL (autopilot reboots)
+    attitude_rate_hz: float = 100.0
+    local_position_rate_hz: float = 50.0
+    distance_sensor_rate_hz: float = 50.0
+    imu_rate_hz: float = 100.0
+    extended_sys_state_rate_hz: float = 5.0
+    use_highres_imu: bool = True           # HIGHRES_IMU, else SCALED_IMU
+    target_component: int = 1              # autopilot component id (MAV_COMP_ID_AUTOPILOT1)
+    thrust: ThrustCalibration = field(default_factory=ThrustCalibration)
+
+    def __post_init__(self) -> None:
+        if self.autopilot not in ('px4', 'ardupilot'):
+            raise ValueError(f"BridgeParams.autopilot = {self.autopilot!r}: must be 'px4' or "
+                             "'ardupilot'")
+        for name in ('input_timeout_s', 'link_timeout_s', 'stream_rate_hz',
+                     'offboard_warmup_s', 'max_stream_gap_s', 'heartbeat_period_s',
+                     'command_retry_s', 'command_timeout_s', 'interval_refresh_s',
+                     'attitude_rate_hz', 'local_position_rate_hz', 'distance_sensor_rate_hz',
+                     'imu_rate_hz', 'extended_sys_state_rate_hz'):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0.0:
+                raise ValueError(f'BridgeParams.{name} = {v!r}: must be a finite number > 0')
+        if self.offboard_warmup_s <= 1.0:
+            raise ValueError(f'BridgeParams.offboard_warmup_s = {self.offboard_warmup_s!r}: '
+                             'must be > 1 s (PX4 needs > 1 s of setpoints before OFFBOARD)')
+        if self.max_stream_gap_s > 0.5:
+            raise ValueError(f'BridgeParams.max_stream_gap_s = {self.max_stream_gap_s!r}: '
+                             'must be <= 0.5 s (PX4 needs > 2 Hz)')
+        if not 0 <= self.target_component <= 255:
+            raise ValueError(f'BridgeParams.target_component = {self.target_component!r}: '
+                             'must be in [0, 255]')
+        if not isinstance(self.thrust, ThrustCalibration):
+            raise ValueError('BridgeParams.thrust must be a ThrustCalibration')
+
+    @property
+    def offboard_mode(self) -> str:
+        """Mode name the bridge requests: OFFBOARD (PX4) or GUIDED_NOGPS (ArduPilot)."""
+        return 'OFFBOARD' if self.autopilot == 'px4' else 'GUIDED_NOGPS'
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeSetpoint:
+    """One SET_ATTITUDE_TARGET to send (NED/FRD quaternion, normalised thrust)."""
+
+    t_s: float
+    q_ned_frd: tuple[float, float, float, float]
+    thrust_norm: float
+    thrust_n: float
+    roll_rad: float       # ENU/FLU, for logging
+    pitch_rad: float
+    yaw_rad: float
+    type_mask: int = 7    # ignore body rates; use attitude and thrust
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    """Something the node must send: a HEARTBEAT, a COMMAND_LONG or a PARAM_REQUEST_READ."""
+
+    kind: str                                  # 'heartbeat' | 'command' | 'param_request'
+    command: int = 0
+    params: tuple[float, ...] = (0.0,) * 7
+    param_id: str = ''
+    note: str = ''
+
+
+_HEARTBEAT = Outgoing('heartbeat')
+
+
+class _Request:
+    """A pending arm/mode request, retried until the HEARTBEAT confirms it or it times out."""
+
+    __slots__ = ('last_sent_s', 'start_s', 'value')
+
+    def __init__(self, t_s: float, value: object) -> None:
+        self.start_s = t_s
+        self.last_sent_s = -math.inf
+        self.value = value
+
+
+class BridgeCore:
+    """Time-driven bridge logic. All methods take the receive/now time ``t_s``.
+
+    Inputs: :meth:`on_heartbeat`, :meth:`on_command_ack`, :meth:`on_param_value`,
+    :meth:`on_extended_sys_state`, :meth:`on_attitude_command`, :meth:`on_thrust_command`,
+    :meth:`on_enabled`, :meth:`request_arm`, :meth:`request_offboard`.
+    Outputs: :meth:`on_thrust_command` returns the :class:`AttitudeSetpoint` to send (or None);
+    :meth:`step` returns the :class:`Outgoing` messages due now.
+    """
+
+    def __init__(self, params: BridgeParams | None = None) -> None:
+        self.params = params or BridgeParams()
+        self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'bad_quaternion': 0,
+                                         'other_system': 0, 'bad_data': 0}
+        self.counters: dict[str, int] = {'setpoints_sent': 0, 'rate_limited': 0,
+                                         'stale_attitude': 0, 'disabled': 0, 'no_link': 0,
+                                         'heartbeats_rx': 0, 'commands_sent': 0}
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the link, the inputs and any pending request (counters are kept)."""
+        # link
+        self.target_system: int | None = None
+        self.target_component: int = self.params.target_component
+        self._last_hb_s = -math.inf
+        self._link_was_up = False
+        self.custom_mode = 0
+        self.base_mode = 0
+        self.mode = 'UNKNOWN'
+        self.armed = False
+        self.landed: bool | None = None
+        self.autopilot_params: dict[str, float] = {}
+        # inputs
+        self._thrust_stamp = -math.inf
+        self._att_stamp = -math.inf
+        self._att_rx_s = -math.inf
+        self._att_q_ned = (1.0, 0.0, 0.0, 0.0)
+        self._att_euler = (0.0, 0.0, 0.0)
+        self.enabled = True
+        # stream
+        self._last_sent_s = -math.inf
+        self._stream_start_s = math.inf
+        # periodic
+        self._last_hb_tx_s = -math.inf
+        self._last_interval_s = -math.inf
+        self._last_param_req_s = -math.inf
+        self._offboard: _Request | None = None
+        self._arm: _Request | None = None
+        self.last_result = ''
+
+    # --- link ----------------------------------------------------------------------------
+
+    def link_up(self, t_s: float) -> bool:
+        """True while the autopilot HEARTBEAT is younger than ``link_timeout_s``."""
+        return t_s - self._last_hb_s <= self.params.link_timeout_s
+
+    def on_heartbeat(self, t_s: float, system_id: int, component_id: int, mav_type: int,
+                     autopilot: int, base_mode: int, custom_mode: int) -> bool:
+        """An incoming HEARTBEAT; returns True when it came from the autopilot we follow."""
+        if autopilot == MAV_AUTOPILOT_INVALID or mav_type in (MAV_TYPE_GCS,
+                                                              MAV_TYPE_ONBOARD_CONTROLLER):
+            return False  # a GCS or another companion, not the flight controller
+        if self.target_system is None:
+            self.target_system = system_id
+            self.target_component = component_id
+        elif system_id != self.target_system or component_id != self.target_component:
+            self.rejected['other_system'] += 1
+            return False
+        if not math.isfinite(t_s) or t_s < self._last_hb_s:
+            self.rejected['out_of_order' if math.isfinite(t_s) else 'nan'] += 1
+            return False
+        if not self.link_up(t_s):
+            self._last_interval_s = -math.inf  # (re)connected: ask for telemetry again
+        self._last_hb_s = t_s
+        self.counters['heartbeats_rx'] += 1
+        self.base_mode = base_mode
+        self.custom_mode = custom_mode
+        self.armed = bool(base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+        self.mode = mode_name(self.params.autopilot, custom_mode)
+        return True
+
+    def on_command_ack(self, t_s: float, command: int, result: int) -> None:
+        """COMMAND_ACK: a final refusal cancels the matching pending request."""
+        if result in (MAV_RESULT_ACCEPTED, MAV_RESULT_TEMPORARILY_REJECTED,
+                      MAV_RESULT_IN_PROGRESS):
+            return  # accepted: wait for the HEARTBEAT; temporarily rejected: retry
+        if command == MAV_CMD_DO_SET_MODE and self._offboard is not None:
+            self._offboard = None
+            self.last_result = f'{self.params.offboard_mode} refused (MAV_RESULT {result})'
+        elif command == MAV_CMD_COMPONENT_ARM_DISARM and self._arm is not None:
+            what = 'arm' if self._arm.value else 'disarm'
+            self._arm = None
+            self.last_result = f'{what} refused (MAV_RESULT {result})'
+
+    def on_param_value(self, name: str, value: float) -> None:
+        """PARAM_VALUE (ArduPilot GUID_OPTIONS / ANGLE_BOOST checks)."""
+        if math.isfinite(value):
+            self.autopilot_params[name] = value
+
+    def on_extended_sys_state(self, landed_state: int) -> None:
+        """EXTENDED_SYS_STATE.landed_state → :attr:`landed` (None when undefined)."""
+        self.landed = landed_from_extended_sys_state(landed_state)
+
+    def count_bad_data(self, n: int = 1) -> None:
+        """Garbage or truncated bytes seen by the transport."""
+        self.rejected['bad_data'] += n
+
+    # --- commands from ROS ---------------------------------------------------------------
+
+    def on_enabled(self, t_s: float, enabled: bool) -> None:
+        """``control/enabled``: False stops streaming and requests a disarm."""
+        if self.enabled and not enabled:
+            self._offboard = None
+            if self.armed:
+                self._arm = _Request(t_s, False)
+        self.enabled = bool(enabled)
+
+    def on_attitude_command(self, t_s: float, stamp_s: float,
+                            q_enu_flu: tuple[float, float, float, float]) -> bool:
+        """``control/attitude`` (FLU in ENU, (w, x, y, z)); returns False when rejected."""
+        if not (math.isfinite(t_s) and math.isfinite(stamp_s)):
+            self.rejected['nan'] += 1
+            return False
+        qn = quat_normalize(q_enu_flu)
+        if qn is None:
+            self.rejected['nan' if not all(map(math.isfinite, q_enu_flu))
+                          else 'bad_quaternion'] += 1
+            return False
+        if stamp_s < self._att_stamp:
+            self.rejected['out_of_order'] += 1
+            return False
+        self._att_stamp = stamp_s
+        self._att_rx_s = t_s
+        self._att_q_ned = quat_enu_flu_to_ned_frd(qn)
+        self._att_euler = quaternion_to_euler(*qn)
+        return True
+
+    def on_attitude_euler(self, t_s: float, stamp_s: float, roll_rad: float, pitch_rad: float,
+                          yaw_rad: float) -> bool:
+        """Same as :meth:`on_attitude_command` from ENU/FLU Z-Y-X Euler angles."""
+        if not all(map(math.isfinite, (t_s, stamp_s, roll_rad, pitch_rad, yaw_rad))):
+            self.rejected['nan'] += 1
+            return False
+        if stamp_s < self._att_stamp:
+            self.rejected['out_of_order'] += 1
+            return False
+        self._att_stamp = stamp_s
+        self._att_rx_s = t_s
+        self._att_q_ned = euler_enu_to_quat_ned(roll_rad, pitch_rad, yaw_rad)
+        self._att_euler = (roll_rad, pitch_rad, yaw_rad)
+        return True
+
+    def on_thrust_command(self, t_s: float, stamp_s: float,
+                          thrust_n: float) -> AttitudeSetpoint | None:
+        """``control/thrust`` (u_z of (16), N). Returns the setpoint to send now, or None.
+
+        None when: the input is bad, the bridge is disabled, the link is down, the attitude
+        command is older than ``input_timeout_s``, or the stream rate limit applies.
+        """
+        if not (math.isfinite(t_s) and math.isfinite(stamp_s) and math.isfinite(thrust_n)):
+            self.rejected['nan'] += 1
+            return None
+        if stamp_s < self._thrust_stamp:
+            self.rejected['out_of_order'] += 1
+            return None
+        self._thrust_stamp = stamp_s
+        p = self.params
+        if not self.enabled:
+            self.counters['disabled'] += 1
+            return None
+        if not self.link_up(t_s):
+            self.counters['no_link'] += 1
+            return None
+        if t_s - self._att_rx_s > p.input_timeout_s:
+            self.counters['stale_attitude'] += 1
+            return None
+        if t_s - self._last_sent_s < 0.9 / p.stream_rate_hz:
+            self.counters['rate_limited'] += 1
+            return None
+        if t_s - self._last_sent_s > p.max_stream_gap_s:
+            self._stream_start_s = t_s  # a new continuous stream starts here
+        self._last_sent_s = t_s
+        self.counters['setpoints_sent'] += 1
+        norm = p.thrust.to_norm(thrust_n)
+        r, pt, y = self._att_euler
+        return AttitudeSetpoint(t_s, self._att_q_ned, norm, thrust_n, r, pt, y)
+
+    def streaming(self, t_s: float) -> bool:
+        """True while setpoints flow (the last one is younger than ``max_stream_gap_s``)."""
+        return t_s - self._last_sent_s <= self.params.max_stream_gap_s
+
+    def stream_age_s(self, t_s: float) -> float:
+        """How long the current continuous stream has lasted (0 when not streaming)."""
+        return t_s - self._stream_start_s if self.streaming(t_s) else 0.0
+
+    # --- services ------------------------------------------------------------------------
+
+    def request_arm(self, t_s: float, arm: bool) -> tuple[bool, str]:
+        """``bridge/arm`` (SetBool). Returns (accepted, message); sending happens in step()."""
+        if not self.link_up(t_s):
+            return False, 'no autopilot heartbeat'
+        if arm and not self.enabled:
+            return False, 'control/enabled is False'
+        if self.armed == bool(arm):
+            return True, 'already ' + ('armed' if arm else 'disarmed')
+        self._arm = _Request(t_s, bool(arm))
+        return True, ('arm' if arm else 'disarm') + ' requested'
+
+    def request_offboard(self, t_s: float) -> tuple[bool, str]:
+        """``bridge/offboard`` (Trigger): request OFFBOARD / GUIDED_NOGPS once setpoints have
+        streamed for ``offboard_warmup_s``. Returns (accepted, message)."""
+        p = self.params
+        if not self.link_up(t_s):
+            return False, 'no autopilot heartbeat'
+        if not self.enabled:
+            return False, 'control/enabled is False'
+        problem = self.ardupilot_config_problem()
+        if problem:
+            return False, problem
+        if self.mode == p.offboard_mode:
+            return True, f'already in {p.offboard_mode}'
+        self._offboard = _Request(t_s, p.offboard_mode)
+        return True, (f'{p.offboard_mode} requested; sent once setpoints have streamed for '
+                      f'{p.offboard_warmup_s:.1f} s')
+
+    def ardupilot_config_problem(self) -> str:
+        """Why ArduPilot's GUIDED_NOGPS would misread our thrust ('' when fine or unknown)."""
+        if self.params.autopilot != 'ardupilot':
+            return ''
+        opts = self.autopilot_params.get('GUID_OPTIONS')
+        if opts is not None and not int(opts) & GUID_OPTIONS_THRUST_BIT:
+            return ('GUID_OPTIONS bit 3 (8) is not set: ArduPilot would read thrust as a climb '
+                    'rate')
+        boost = self.autopilot_params.get('ANGLE_BOOST')
+        if boost is not None and boost != 0.0:
+            return 'ANGLE_BOOST must be 0: the bridge sends body thrust, not tilt-compensated'
+        return ''
+
+    def pending(self) -> dict[str, object]:
+        """Pending requests, for diagnostics."""
+        return {'offboard': self._offboard is not None,
+                'arm': None if self._arm is None else self._arm.value}
+
+    # --- periodic ------------------------------------------------------------------------
+
+    def step(self, t_s: float) -> list[Outgoing]:
+        """What to send now: heartbeat (1 Hz), message intervals, retries of arm/mode."""
+        p = self.params
+        out: list[Outgoing] = []
+        if not math.isfinite(t_s):
+            self.rejected['nan'] += 1
+            return out
+        if t_s - self._last_hb_tx_s >= p.heartbeat_period_s:
+            self._last_hb_tx_s = t_s
+            out.append(_HEARTBEAT)
+        up = self.link_up(t_s)
+        if not up:
+            if self._link_was_up:
+                self.last_result = 'link lost'
+            self._link_was_up = False
+            self._offboard = None
+            self._arm = None
+            return out
+        self._link_was_up = True
+        if t_s - self._last_interval_s >= p.interval_refresh_s:
+            self._last_interval_s = t_s
+            out.extend(self._interval_requests())
+        if p.autopilot == 'ardupilot' and t_s - self._last_param_req_s >= 2.0 and not (
+                'GUID_OPTIONS' in self.autopilot_params
+                and 'ANGLE_BOOST' in self.autopilot_params):
+            self._last_param_req_s = t_s
+            out.extend(Outgoing('param_request', param_id=n)
+                       for n in ('GUID_OPTIONS', 'ANGLE_BOOST')
+                       if n not in self.autopilot_params)
+        self._step_offboard(t_s, out)
+        self._step_arm(t_s, out)
+        self.counters['commands_sent'] += sum(1 for o in out if o.kind == 'command')
+        return out
+
+    def _interval_requests(self) -> list[Outgoing]:
+        p = self.params
+        rates = (('ATTITUDE', p.attitude_rate_hz),
+                 ('LOCAL_POSITION_NED', p.local_position_rate_hz),
+                 ('DISTANCE_SENSOR', p.distance_sensor_rate_hz),
+                 ('HIGHRES_IMU' if p.use_highres_imu else 'SCALED_IMU', p.imu_rate_hz),
+                 ('EXTENDED_SYS_STATE', p.extended_sys_state_rate_hz),
+                 ('HEARTBEAT', 1.0))
+        return [Outgoing('command', MAV_CMD_SET_MESSAGE_INTERVAL,
+                         (float(MSG_ID[name]), float(round(1e6 / hz)), 0.0, 0.0, 0.0, 0.0, 0.0),
+                         note=name) for name, hz in rates]
+
+    def _step_offboard(self, t_s: float, out: list[Outgoing]) -> None:
+        req = self._offboard
+        if req is None:
+            return
+        p = self.params
+        if self.mode == p.offboard_mode:
+            self._offboard = None
+            self.last_result = f'{p.offboard_mode} active'
+            return
+        if t_s - req.start_s > p.command_timeout_s:
+            self._offboard = None
+            self.last_result = f'{p.offboard_mode} request timed out'
+            return
+        if self.stream_age_s(t_s) < p.offboard_warmup_s:
+            return  # keep streaming first (PX4 rejects OFFBOARD without a warm stream)
+        if t_s - req.last_sent_s >= p.command_retry_s:
+            req.last_sent_s = t_s
+            p1, p2, p3 = do_set_mode_params(p.autopilot, p.offboard_mode)
+            out.append(Outgoing('command', MAV_CMD_DO_SET_MODE,
+                                (p1, p2, p3, 0.0, 0.0, 0.0, 0.0), note=p.offboard_mode))
+
+    def _step_arm(self, t_s: float, out: list[Outgoing]) -> None:
+        req = self._arm
+        if req is None:
+            return
+        p = self.params
+        if self.armed == req.value:
+            self._arm = None
+            self.last_result = 'armed' if req.value else 'disarmed'
+            return
+        if t_s - req.start_s > p.command_timeout_s:
+            self._arm = None
+            self.last_result = ('arm' if req.value else 'disarm') + ' request timed out'
+            return
+        if t_s - req.last_sent_s >= p.command_retry_s:
+            req.last_sent_s = t_s
+            out.append(Outgoing('command', MAV_CMD_COMPONENT_ARM_DISARM,
+                                (1.0 if req.value else 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+                                note='arm' if req.value else 'disarm'))
