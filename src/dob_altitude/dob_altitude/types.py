@@ -1,0 +1,39 @@
+"""Inputs and outputs of the altitude controllers (contract: docs/interfaces.md, dob_altitude).
+
+Both :class:`~dob_altitude.dob.DobAltitudeController` and
+:class:`~dob_altitude.pid.PidAltitudeController` take an :class:`AltitudeInput` and return an
+:class:`AltitudeOutput`. Heights are of the body origin above the surface below (deck or
+ground), so ``z_m`` is the *relative* height z = z_vehicle − z_surface of the paper's (6)-(7).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class AltitudeInput:
+    """One controller sample: measured state, reference and attitude (SI units, ENU/FLU)."""
+
+    z_m: float  # height above the surface below (deck or ground), body origin
+    z_dot_mps: float  # its rate (closing speed; negative when descending toward it)
+    z_d_m: float  # reference height above the surface
+    z_d_dot_mps: float
+    z_d_ddot_mps2: float
+    roll_rad: float
+    pitch_rad: float
+    rotor_height_m: float  # rotor plane above the surface, for γ̄ of (4)
+    surface_accel_mps2: float = 0.0  # known vertical acceleration of the surface (0 = paper)
+
+
+@dataclass(frozen=True, slots=True)
+class AltitudeOutput:
+    """One controller command plus the internal signals worth logging."""
+
+    thrust_n: float  # u_z actually commanded (after saturation)
+    thrust_unsat_n: float  # before saturation
+    saturated: bool
+    sigma: float  # (14); PID: the same expression for comparison
+    d_hat_mps2: float  # (18); PID: integral term expressed as an acceleration
+    e_z_m: float  # (7)
+    gamma_bar: float  # nominal ground-effect gain used (4)
