@@ -1,0 +1,242 @@
+"""ApronEstimator: camera model + horizontal KF + vertical filter (pure; docs/interfaces.md).
+
+Data flow: ``on_camera(t, blocks)`` looks up the attitude at the exposure stamp ``t`` (linear
+interpolation in a ~0.5 s history), the height above the deck at ``t`` (vertical filter,
+falling back to the last tilt-corrected lidar height; the raw lidar range in ``paper_exact``
+mode), turns every block into a beacon-minus-vehicle offset in ENU with the camera model
+(27)-(30), and hands the candidates to the horizontal tracker (31)-(34) at stamp ``t``.
+``state(t)`` predicts both filters to ``t`` without changing them and fills every
+:class:`ApronState` field: the heading-frame (FLU) offsets use our form of (35),
+``rel_FLU = Rz(ψ)ᵀ rel_ENU``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+import math
+
+from deckland_common.frames import wrap_pi
+
+from apron_estimator import _validate as chk
+from apron_estimator.camera import CameraModel, CameraParams
+from apron_estimator.horizontal import HorizontalParams, HorizontalTracker
+from apron_estimator.types import ApronState, PixyBlock
+from apron_estimator.vertical import VerticalFilter, VerticalParams
+
+_isfinite = math.isfinite
+
+
+@dataclass(frozen=True)
+class EstimatorParams:
+    """All estimator parameters; sub-dataclasses validate themselves."""
+
+    camera: CameraParams = field(default_factory=CameraParams)
+    horizontal: HorizontalParams = field(default_factory=HorizontalParams)
+    vertical: VerticalParams = field(default_factory=VerticalParams)
+    beacon_signature: int = 0           # Pixy signature of the beacon; 0 = any
+    attitude_history_s: float = 0.5
+    max_attitude_gap_s: float = 0.1     # no attitude sample this close to a stamp → no fix
+    height_fallback_timeout_s: float = 1.0  # raw lidar height usable this long w/o filter
+    visible_timeout_s: float = 0.2      # ``visible`` also needs a frame this recent
+    max_position_extrapolation_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        o = 'EstimatorParams'
+        for name, cls in (('camera', CameraParams), ('horizontal', HorizontalParams),
+                          ('vertical', VerticalParams)):
+            if not isinstance(getattr(self, name), cls):
+                raise ValueError(f'{o}.{name} must be a {cls.__name__}')
+        chk.integer_at_least(o, 'beacon_signature', self.beacon_signature, 0)
+        chk.positive(o, 'attitude_history_s', self.attitude_history_s)
+        chk.positive(o, 'max_attitude_gap_s', self.max_attitude_gap_s)
+        chk.positive(o, 'height_fallback_timeout_s', self.height_fallback_timeout_s)
+        chk.positive(o, 'visible_timeout_s', self.visible_timeout_s)
+        chk.non_negative(o, 'max_position_extrapolation_s', self.max_position_extrapolation_s)
+
+
+class ApronEstimator:
+    """Apron (beacon) state from Pixy blocks, attitude, local position, acceleration, lidar."""
+
+    def __init__(self, params: EstimatorParams | None = None) -> None:
+        self.params = params if params is not None else EstimatorParams()
+        self.camera = CameraModel(self.params.camera)
+        self.horizontal = HorizontalTracker(self.params.horizontal)
+        self.vertical = VerticalFilter(self.params.vertical)
+        self._own: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'no_attitude': 0,
+                                     'no_height': 0, 'signature': 0, 'off_deck': 0}
+        self._att: deque[tuple[float, float, float, float]] = deque()
+        self._pos: tuple[float, tuple[float, float, float], tuple[float, float, float]] | None
+        self._pos = None
+        self._t_camera = -math.inf
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        """Rejection counters: own keys, plus ``horizontal.*`` and ``vertical.*``."""
+        out = dict(self._own)
+        for k, v in self.horizontal.rejected.items():
+            out['horizontal.' + k] = v
+        for k, v in self.vertical.rejected.items():
+            out['vertical.' + k] = v
+        return out
+
+    # -- inputs ----------------------------------------------------------------------------
+    def on_attitude(self, t_s: float, roll_rad: float, pitch_rad: float,
+                    yaw_rad: float) -> None:
+        if not (_isfinite(t_s) and _isfinite(roll_rad) and _isfinite(pitch_rad)
+                and _isfinite(yaw_rad)):
+            self._own['nan'] += 1
+            return
+        att = self._att
+        if att and t_s <= att[-1][0]:
+            self._own['out_of_order'] += 1
+            return
+        att.append((t_s, roll_rad, pitch_rad, yaw_rad))
+        horizon = t_s - self.params.attitude_history_s
+        while len(att) > 2 and att[1][0] < horizon:
+            att.popleft()
+
+    def attitude_at(self, t_s: float) -> tuple[float, float, float] | None:
+        """(roll, pitch, yaw) at t_s, linear between samples (yaw wrapped); None if no sample
+        within ``max_attitude_gap_s``."""
+        att = self._att
+        if not att:
+            return None
+        gap = self.params.max_attitude_gap_s
+        last = att[-1]
+        if t_s >= last[0]:
+            return (last[1], last[2], last[3]) if t_s - last[0] <= gap else None
+        for i in range(len(att) - 2, -1, -1):
+            a = att[i]
+            if a[0] <= t_s:
+                b = att[i + 1]
+                span = b[0] - a[0]
+                if min(t_s - a[0], b[0] - t_s) > gap:
+                    return None
+                w = (t_s - a[0]) / span
+                return (a[1] + w * (b[1] - a[1]), a[2] + w * (b[2] - a[2]),
+                        wrap_pi(a[3] + w * wrap_pi(b[3] - a[3])))
+        first = att[0]
+        return (first[1], first[2], first[3]) if first[0] - t_s <= gap else None
+
+    def on_local_position(self, t_s: float, position_m: Sequence[float],
+                          velocity_mps: Sequence[float]) -> None:
+        """Vehicle local position / velocity, world ENU (GPS / EKF)."""
+        try:
+            px, py, pz = (float(v) for v in position_m)
+            vx, vy, vz = (float(v) for v in velocity_mps)
+        except (TypeError, ValueError):
+            self._own['nan'] += 1
+            return
+        if not all(_isfinite(v) for v in (t_s, px, py, pz, vx, vy, vz)):
+            self._own['nan'] += 1
+            return
+        if self._pos is not None and t_s <= self._pos[0]:
+            self._own['out_of_order'] += 1
+            return
+        self._pos = (t_s, (px, py, pz), (vx, vy, vz))
+        self.vertical.on_altitude(t_s, pz, vz)
+
+    def on_accel(self, t_s: float, accel_world_mps2: Sequence[float]) -> None:
+        """Vehicle acceleration, ENU, gravity removed."""
+        try:
+            ax, ay, az = (float(v) for v in accel_world_mps2)
+        except (TypeError, ValueError):
+            self._own['nan'] += 1
+            return
+        self.horizontal.on_accel(t_s, ax, ay)
+        self.vertical.on_accel(t_s, az)
+
+    def on_lidar(self, t_s: float, range_m: float | None) -> None:
+        """Downward lidar range (None = no return); tilt from the attitude at t_s."""
+        att = self.attitude_at(t_s) if _isfinite(t_s) else None
+        roll, pitch = (att[0], att[1]) if att is not None else (0.0, 0.0)
+        self.vertical.on_lidar(t_s, range_m, roll, pitch)
+
+    def on_camera(self, t_s: float, blocks: Sequence[PixyBlock]) -> None:
+        """One Pixy frame; ``t_s`` is its exposure stamp (may be in the past)."""
+        if not _isfinite(t_s):
+            self._own['nan'] += 1
+            return
+        if t_s <= self._t_camera:
+            self._own['out_of_order'] += 1
+            return
+        att = self.attitude_at(t_s)
+        if att is None:
+            self._own['no_attitude'] += 1
+            return
+        height = self._height_at(t_s)
+        if height is None:
+            self._own['no_height'] += 1
+            return
+        self._t_camera = t_s
+        sig = self.params.beacon_signature
+        scored = []
+        for b in blocks:
+            if sig and b.signature != sig:
+                self._own['signature'] += 1
+                continue
+            x, y, w, h = b.x_px, b.y_px, b.width_px, b.height_px
+            if not (_isfinite(x) and _isfinite(y) and _isfinite(w) and _isfinite(h)):
+                self._own['nan'] += 1
+                continue
+            scored.append((-(w * h), x, y))
+        scored.sort()
+        roll, pitch, yaw = att
+        candidates = []
+        rel = self.camera.relative_position
+        for _, x, y in scored:
+            c = rel(x, y, height, roll, pitch, yaw)
+            if c is None:
+                self._own['off_deck'] += 1
+            else:
+                candidates.append(c)
+        self.horizontal.update(t_s, candidates, height)
+
+    def _height_at(self, t_s: float) -> float | None:
+        vf = self.vertical
+        if self.params.camera.paper_exact:
+            # the paper's z in (29)-(30) is the raw LidarLite range
+            if vf.last_range_m is not None and self._recent_lidar(t_s):
+                return vf.last_range_m
+            return None
+        if vf.valid_at(t_s):
+            h = vf.state(t_s).height_m
+            if h > 0.0:
+                return h
+        if vf.last_h_m is not None and self._recent_lidar(t_s):
+            return vf.last_h_m
+        return None
+
+    def _recent_lidar(self, t_s: float) -> bool:
+        t = self.vertical.t_last_range
+        return t is not None and abs(t_s - t) <= self.params.height_fallback_timeout_s
+
+    # -- output ----------------------------------------------------------------------------
+    def state(self, t_s: float) -> ApronState:
+        """Everything predicted to t_s; the filters are not changed."""
+        if not _isfinite(t_s):
+            self._own['nan'] += 1
+            return ApronState.untracked(0.0)
+        x, y, vx, vy, var_x, var_y, tracked, since = self.horizontal.state(t_s)
+        vertical = self.vertical.state(t_s)
+        visible = (self.horizontal.visible and t_s - self._t_camera
+                   <= self.params.visible_timeout_s)
+        yaw = self._att[-1][3] if self._att else 0.0
+        c, s = math.cos(yaw), math.sin(yaw)
+        if self._pos is not None:
+            tp, pos, vel = self._pos
+            dt = min(max(0.0, t_s - tp), self.params.max_position_extrapolation_s)
+            vpx, vpy = pos[0] + vel[0] * dt, pos[1] + vel[1] * dt
+            vvx, vvy = vel[0], vel[1]
+        else:
+            vpx = vpy = vvx = vvy = 0.0
+        return ApronState(
+            t_s=t_s, tracked=tracked, visible=visible, time_since_seen_s=since,
+            rel_position_m=(x, y), rel_velocity_mps=(vx, vy),
+            rel_position_var_m2=(var_x, var_y),
+            rel_position_body_m=(c * x + s * y, -s * x + c * y),
+            rel_velocity_body_mps=(c * vx + s * vy, -s * vx + c * vy),
+            apron_position_m=(vpx + x, vpy + y), apron_velocity_mps=(vvx + vx, vvy + vy),
+            vertical=vertical, camera_stamp_s=self._t_camera)

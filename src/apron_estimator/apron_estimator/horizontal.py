@@ -1,0 +1,362 @@
+"""Horizontal Kalman filter of the beacon's relative position and velocity (pure).
+
+Paper (31)-(34): state p = [x, v_x, y, v_y]ᵀ, ``p_{t+1} = A p_t + w`` with
+``A = [[1, t_s, 0, 0], [0, 1, 0, 0], [0, 0, 1, t_s], [0, 0, 0, 1]]`` (32), process noise
+``w = [0, w_x, 0, w_y]ᵀ`` on the velocities (31), measurement ``z = H p + v`` with
+``H = [[1, 0, 0, 0], [0, 0, 1, 0]]`` (34).
+
+A and H are block diagonal, and so are Q and R here, so the 4-state filter separates exactly
+into two independent 2-state filters [position, velocity], one per ENU axis; they are written
+out in scalar closed form (``test_estimator_horizontal`` proves every step equals filterpy's
+``KalmanFilter`` to 1e-9). Choices beyond the paper:
+
+* the state is beacon *minus* vehicle in ENU axes (not body axes), so vehicle yaw does not
+  rotate the state;
+* variable step ``dt`` (measurements at their exposure stamps): ``Q = diag(0, q·dt)`` keeps the
+  paper's velocity-only noise structure and makes it rate independent (q in m²/s³);
+* control input u = −(vehicle acceleration): ``x ← x + v dt + Δp``, ``v ← v + Δv`` with the
+  exact double integral of the zero-order-held acceleration between the two stamps
+  (:class:`AccelIntegrator`), like PX4's landing_target_estimator;
+* measurement noise σ = σ0 + k·h (h = height above the deck);
+* NIS gate (2-D χ²), acquisition after N consistent detections, loss after a timeout.
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_right
+from dataclasses import dataclass
+import math
+
+from apron_estimator import _validate as chk
+
+_UNKNOWN_VAR_M2 = 1.0e4  # reported variance before the first detection
+
+
+class AxisPairKF:
+    """Two independent [position, velocity] Kalman filters (x and y) in scalar closed form.
+
+    Per axis, with P = [[a, b], [b, c]]:
+    predict (32): p ← p + v·dt + Δp, v ← v + Δv;
+    P ← F P Fᵀ + Q: a ← a + 2 dt b + dt² c, b ← b + dt c, c ← c + q dt.
+    update (33)-(34): S = a + r, K = [a, b]/S, p ← p + K₀ ν, v ← v + K₁ ν,
+    P ← P − K S Kᵀ: a ← a − a²/S, b ← b − a b/S, c ← c − b²/S.
+    """
+
+    __slots__ = ('ax', 'ay', 'bx', 'by', 'cx', 'cy', 'px', 'py', 'vx', 'vy')
+
+    def __init__(self) -> None:
+        self.reset(0.0, 0.0, 1.0, 1.0)
+
+    def reset(self, x: float, y: float, pos_var: float, vel_var: float,
+              vx: float = 0.0, vy: float = 0.0) -> None:
+        self.px, self.vx, self.py, self.vy = x, vx, y, vy
+        self.ax = self.ay = pos_var
+        self.bx = self.by = 0.0
+        self.cx = self.cy = vel_var
+
+    def predict(self, dt: float, q: float, dpx: float = 0.0, dvx: float = 0.0,
+                dpy: float = 0.0, dvy: float = 0.0) -> None:
+        """(31)-(32) over ``dt`` with control displacements (Δp, Δv) per axis."""
+        qdt = q * dt
+        self.px += self.vx * dt + dpx
+        self.vx += dvx
+        self.ax += dt * (2.0 * self.bx + dt * self.cx)
+        self.bx += dt * self.cx
+        self.cx += qdt
+        self.py += self.vy * dt + dpy
+        self.vy += dvy
+        self.ay += dt * (2.0 * self.by + dt * self.cy)
+        self.by += dt * self.cy
+        self.cy += qdt
+
+    def nis(self, zx: float, zy: float, r: float) -> float:
+        """Normalised innovation squared νᵀ S⁻¹ ν (S is diagonal: the axes are independent)."""
+        nx = zx - self.px
+        ny = zy - self.py
+        return nx * nx / (self.ax + r) + ny * ny / (self.ay + r)
+
+    def update(self, zx: float, zy: float, r: float) -> None:
+        """(33)-(34) with R = diag(r, r)."""
+        s = self.ax + r
+        nu = zx - self.px
+        k0, k1 = self.ax / s, self.bx / s
+        self.px += k0 * nu
+        self.vx += k1 * nu
+        a, b = self.ax, self.bx
+        self.ax = a - a * k0
+        self.bx = b - b * k0
+        self.cx -= b * k1
+        s = self.ay + r
+        nu = zy - self.py
+        k0, k1 = self.ay / s, self.by / s
+        self.py += k0 * nu
+        self.vy += k1 * nu
+        a, b = self.ay, self.by
+        self.ay = a - a * k0
+        self.by = b - b * k0
+        self.cy -= b * k1
+
+    def predicted(self, dt: float, q: float, dpx: float, dvx: float, dpy: float,
+                  dvy: float) -> tuple[float, float, float, float, float, float]:
+        """(x, y, vx, vy, var_x, var_y) after a predict, without changing the filter."""
+        return (self.px + self.vx * dt + dpx, self.py + self.vy * dt + dpy,
+                self.vx + dvx, self.vy + dvy,
+                self.ax + dt * (2.0 * self.bx + dt * self.cx),
+                self.ay + dt * (2.0 * self.by + dt * self.cy))
+
+
+class AccelIntegrator:
+    """Zero-order-held horizontal vehicle acceleration and its running integrals.
+
+    Stores (t, a, V, X) per sample with V = ∫a, X = ∫V from the first sample, so the control
+    effect between any two stamps is O(log n): Δv = V(t1) − V(t0),
+    Δp = X(t1) − X(t0) − V(t0)(t1 − t0) (exact for piecewise-constant acceleration).
+    Acceleration before the first sample is taken as zero.
+    """
+
+    __slots__ = ('_ax', '_ay', '_t', '_vx', '_vy', '_xx', '_xy', 'history_s')
+
+    def __init__(self, history_s: float = 3.0) -> None:
+        self.history_s = history_s
+        self.clear()
+
+    def clear(self) -> None:
+        self._t: list[float] = []
+        self._ax: list[float] = []
+        self._ay: list[float] = []
+        self._vx: list[float] = []
+        self._vy: list[float] = []
+        self._xx: list[float] = []
+        self._xy: list[float] = []
+
+    @property
+    def last_t(self) -> float | None:
+        return self._t[-1] if self._t else None
+
+    def add(self, t_s: float, ax: float, ay: float) -> bool:
+        """Append a sample; False (ignored) if t_s is not after the previous sample."""
+        ts = self._t
+        if not ts:
+            vx = vy = xx = xy = 0.0
+        else:
+            t0 = ts[-1]
+            if t_s <= t0:
+                return False
+            dt = t_s - t0
+            a0x, a0y, v0x, v0y = self._ax[-1], self._ay[-1], self._vx[-1], self._vy[-1]
+            vx = v0x + a0x * dt
+            vy = v0y + a0y * dt
+            xx = self._xx[-1] + dt * (v0x + 0.5 * a0x * dt)
+            xy = self._xy[-1] + dt * (v0y + 0.5 * a0y * dt)
+        ts.append(t_s)
+        self._ax.append(ax)
+        self._ay.append(ay)
+        self._vx.append(vx)
+        self._vy.append(vy)
+        self._xx.append(xx)
+        self._xy.append(xy)
+        if len(ts) > 64 and ts[0] < t_s - 2.0 * self.history_s:
+            k = bisect_right(ts, t_s - self.history_s)
+            for lst in (ts, self._ax, self._ay, self._vx, self._vy, self._xx, self._xy):
+                del lst[:k]
+        return True
+
+    def integrals(self, t_s: float) -> tuple[float, float, float, float]:
+        """(V_x, X_x, V_y, X_y) at t_s."""
+        ts = self._t
+        k = bisect_right(ts, t_s) - 1
+        if k < 0:
+            return 0.0, 0.0, 0.0, 0.0
+        dt = t_s - ts[k]
+        ax, ay, vx, vy = self._ax[k], self._ay[k], self._vx[k], self._vy[k]
+        return (vx + ax * dt, self._xx[k] + dt * (vx + 0.5 * ax * dt),
+                vy + ay * dt, self._xy[k] + dt * (vy + 0.5 * ay * dt))
+
+    def displacement(self, t0: float, t1: float) -> tuple[float, float, float, float]:
+        """(Δp_x, Δv_x, Δp_y, Δv_y) caused by the acceleration alone over [t0, t1]."""
+        if not self._t or t1 <= self._t[0]:
+            return 0.0, 0.0, 0.0, 0.0
+        v0x, x0x, v0y, x0y = self.integrals(t0)
+        v1x, x1x, v1y, x1y = self.integrals(t1)
+        dt = t1 - t0
+        return x1x - x0x - v0x * dt, v1x - v0x, x1y - x0y - v0y * dt, v1y - v0y
+
+    def relative_control(self, t0: float, t1: float) -> tuple[float, float, float, float]:
+        """(Δp_x, Δv_x, Δp_y, Δv_y) of the *relative* state, u = −a_vehicle, over [t0, t1]."""
+        dpx, dvx, dpy, dvy = self.displacement(t0, t1)
+        return -dpx, -dvx, -dpy, -dvy
+
+
+@dataclass(frozen=True)
+class HorizontalParams:
+    """Horizontal filter and track management."""
+
+    accel_psd_m2ps3: float = 0.5      # q: relative velocity random walk, Q = diag(0, q dt) (31)
+    sigma0_m: float = 0.02            # measurement σ = sigma0_m + sigma_per_m · h
+    sigma_per_m: float = 0.015        # m per m of height (≈ 0.9° of angular error)
+    nis_gate: float = 13.8            # 2-D χ² gate on the NIS (13.8 ≈ 99.9 %)
+    acquire_hits: int = 3             # consistent detections before ``tracked``
+    lost_timeout_s: float = 1.0       # no accepted detection for this long → lost
+    init_vel_sigma_mps: float = 1.5   # velocity σ at (re-)initialisation
+    use_accel_input: bool = True      # u = −vehicle acceleration (beyond the paper)
+    accel_history_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        o = 'HorizontalParams'
+        chk.non_negative(o, 'accel_psd_m2ps3', self.accel_psd_m2ps3)
+        chk.positive(o, 'sigma0_m', self.sigma0_m)
+        chk.non_negative(o, 'sigma_per_m', self.sigma_per_m)
+        chk.positive(o, 'nis_gate', self.nis_gate)
+        chk.integer_at_least(o, 'acquire_hits', self.acquire_hits, 1)
+        chk.positive(o, 'lost_timeout_s', self.lost_timeout_s)
+        chk.positive(o, 'init_vel_sigma_mps', self.init_vel_sigma_mps)
+        if not isinstance(self.use_accel_input, bool):
+            raise ValueError(f'{o}.use_accel_input must be a bool, got {self.use_accel_input!r}')
+        chk.positive(o, 'accel_history_s', self.accel_history_s)
+        if self.accel_history_s < self.lost_timeout_s:
+            raise ValueError(f'{o}.accel_history_s must be >= lost_timeout_s')
+
+    def sigma_m(self, height_m: float) -> float:
+        return self.sigma0_m + self.sigma_per_m * max(0.0, height_m)
+
+
+class HorizontalTracker:
+    """Track management around :class:`AxisPairKF` (latency, gating, acquisition, loss).
+
+    States: idle (nothing) → acquiring (a candidate filter, ``hits`` consistent detections)
+    → tracking (``hits >= acquire_hits``) → idle again after ``lost_timeout_s`` without an
+    accepted detection. The filter lives at the stamp of its last measurement; measurements
+    are applied at their own (exposure) stamps and must arrive in order; :meth:`state`
+    predicts to any later time without changing the filter.
+    """
+
+    def __init__(self, params: HorizontalParams | None = None) -> None:
+        self.params = params if params is not None else HorizontalParams()
+        self.kf = AxisPairKF()
+        self.accel = AccelIntegrator(self.params.accel_history_s)
+        self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'gated': 0}
+        self.events: dict[str, int] = {'acquired': 0, 'lost': 0, 'restarts': 0}
+        self.reset()
+
+    def reset(self) -> None:
+        self.mode = 'idle'
+        self.hits = 0
+        self.t_filter: float | None = None
+        self.t_last_frame: float | None = None
+        self.t_last_accept: float | None = None
+        self.visible = False
+        self.last_nis = 0.0
+
+    @property
+    def tracked(self) -> bool:
+        return self.mode == 'tracking'
+
+    def on_accel(self, t_s: float, ax: float, ay: float) -> None:
+        """Vehicle horizontal acceleration, ENU, gravity removed."""
+        if not (math.isfinite(t_s) and math.isfinite(ax) and math.isfinite(ay)):
+            self.rejected['nan'] += 1
+            return
+        if not self.accel.add(t_s, ax, ay):
+            self.rejected['out_of_order'] += 1
+
+    def _control(self, t0: float, t1: float) -> tuple[float, float, float, float]:
+        if not self.params.use_accel_input:
+            return 0.0, 0.0, 0.0, 0.0
+        return self.accel.relative_control(t0, t1)
+
+    def _check_lost(self, t_s: float) -> None:
+        if self.mode != 'idle' and t_s - self.t_last_accept > self.params.lost_timeout_s:
+            if self.mode == 'tracking':
+                self.events['lost'] += 1
+            self.mode = 'idle'
+            self.hits = 0
+
+    def _start(self, t_s: float, x: float, y: float, r: float) -> None:
+        v0 = self.params.init_vel_sigma_mps
+        self.kf.reset(x, y, r, v0 * v0)
+        self.t_filter = t_s
+        self.t_last_accept = t_s
+        self.mode = 'acquiring'
+        self.hits = 1
+        self.last_nis = 0.0
+        if self.params.acquire_hits <= 1:
+            self.mode = 'tracking'
+            self.events['acquired'] += 1
+
+    def update(self, t_s: float, candidates: list[tuple[float, float]],
+               height_m: float) -> bool:
+        """One camera frame: candidate beacon offsets (ENU, m), best first; True if accepted.
+
+        ``t_s`` is the exposure stamp; frames must be strictly in order (else rejected and
+        counted). Among the candidates passing the NIS gate the one with the smallest NIS is
+        used; others are counted as ``gated``. An empty list is a frame without a detection.
+        """
+        if not (math.isfinite(t_s) and math.isfinite(height_m)):
+            self.rejected['nan'] += 1
+            return False
+        if self.t_last_frame is not None and t_s <= self.t_last_frame:
+            self.rejected['out_of_order'] += 1
+            return False
+        if self.t_filter is not None and t_s <= self.t_filter:
+            self.rejected['out_of_order'] += 1
+            return False
+        self.t_last_frame = t_s
+        self._check_lost(t_s)
+        self.visible = False
+        good = [c for c in candidates if math.isfinite(c[0]) and math.isfinite(c[1])]
+        self.rejected['nan'] += len(candidates) - len(good)
+        if not good:
+            return False
+        sigma = self.params.sigma_m(height_m)
+        r = sigma * sigma
+        if self.mode == 'idle':
+            self._start(t_s, good[0][0], good[0][1], r)
+            self.visible = True
+            return True
+        kf = self.kf
+        dpx, dvx, dpy, dvy = self._control(self.t_filter, t_s)
+        kf.predict(t_s - self.t_filter, self.params.accel_psd_m2ps3, dpx, dvx, dpy, dvy)
+        self.t_filter = t_s
+        best, best_nis = None, math.inf
+        for c in good:
+            nis = kf.nis(c[0], c[1], r)
+            if nis < best_nis:
+                best, best_nis = c, nis
+        if best_nis > self.params.nis_gate:
+            self.rejected['gated'] += len(good)
+            if self.mode == 'acquiring':
+                # inconsistent with the candidate track: start over from this detection
+                self.events['restarts'] += 1
+                self._start(t_s, good[0][0], good[0][1], r)
+                self.visible = True
+                return True
+            return False
+        self.rejected['gated'] += len(good) - 1
+        kf.update(best[0], best[1], r)
+        self.last_nis = best_nis
+        self.t_last_accept = t_s
+        self.visible = True
+        if self.mode == 'acquiring':
+            self.hits += 1
+            if self.hits >= self.params.acquire_hits:
+                self.mode = 'tracking'
+                self.events['acquired'] += 1
+        return True
+
+    def state(self, t_s: float) -> tuple[float, float, float, float, float, float, bool, float]:
+        """(x, y, vx, vy, var_x, var_y, tracked, time_since_seen_s) predicted to t_s.
+
+        Does not change the filter. Before the first detection: zeros, variance 1e4 m².
+        """
+        if self.t_filter is None or not math.isfinite(t_s):
+            return 0.0, 0.0, 0.0, 0.0, _UNKNOWN_VAR_M2, _UNKNOWN_VAR_M2, False, math.inf
+        since = max(0.0, t_s - self.t_last_accept)
+        tracked = self.mode == 'tracking' and since <= self.params.lost_timeout_s
+        kf = self.kf
+        dt = t_s - self.t_filter
+        if dt <= 0.0:
+            return kf.px, kf.py, kf.vx, kf.vy, kf.ax, kf.ay, tracked, since
+        dpx, dvx, dpy, dvy = self._control(self.t_filter, t_s)
+        x, y, vx, vy, var_x, var_y = kf.predicted(dt, self.params.accel_psd_m2ps3,
+                                                  dpx, dvx, dpy, dvy)
+        return x, y, vx, vy, var_x, var_y, tracked, since

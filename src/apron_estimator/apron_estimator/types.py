@@ -1,0 +1,151 @@
+"""Inputs and outputs of the apron estimator (pure, no rclpy); see docs/interfaces.md.
+
+``ApronState.to_array()`` / ``ApronState.from_array()`` define the flat ``apron_state_v1``
+layout carried by the ``apron/state`` topic (std_msgs/Float64MultiArray). The index of every
+field is listed in :data:`APRON_STATE_V1_FIELDS` (also rendered in the package README).
+Booleans are 0.0 / 1.0, ``surface_epoch`` is an integer stored as a float, and
+``time_since_seen_s`` / ``camera_stamp_s`` may be ``inf`` / ``-inf`` (never NaN).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+import math
+
+APRON_STATE_LAYOUT = 'apron_state_v1'
+
+#: Field name at each index of the flat ``apron_state_v1`` array.
+APRON_STATE_V1_FIELDS: tuple[str, ...] = (
+    't_s',                       # 0
+    'camera_stamp_s',            # 1  stamp of the latest camera frame processed, -inf if none
+    'tracked',                   # 2
+    'visible',                   # 3
+    'time_since_seen_s',         # 4  inf if never seen
+    'rel_position_x_m',          # 5  beacon minus vehicle, ENU
+    'rel_position_y_m',          # 6
+    'rel_velocity_x_mps',        # 7
+    'rel_velocity_y_mps',        # 8
+    'rel_position_var_x_m2',     # 9
+    'rel_position_var_y_m2',     # 10
+    'rel_position_body_x_m',     # 11 heading frame (FLU): forward
+    'rel_position_body_y_m',     # 12 heading frame (FLU): left
+    'rel_velocity_body_x_mps',   # 13
+    'rel_velocity_body_y_mps',   # 14
+    'apron_position_x_m',        # 15 world ENU
+    'apron_position_y_m',        # 16
+    'apron_velocity_x_mps',      # 17
+    'apron_velocity_y_mps',      # 18
+    'vertical_valid',            # 19
+    'height_m',                  # 20 body origin above the surface below
+    'closing_speed_mps',         # 21 dh/dt
+    'vehicle_altitude_m',        # 22
+    'vehicle_vz_mps',            # 23
+    'surface_height_m',          # 24
+    'surface_vz_mps',            # 25
+    'surface_accel_mps2',        # 26
+    'surface_epoch',             # 27
+    'last_rebase_m',             # 28
+)
+APRON_STATE_V1_LEN = len(APRON_STATE_V1_FIELDS)
+
+
+@dataclass(frozen=True, slots=True)
+class PixyBlock:
+    """One Pixy colour block (CMUcam5 block protocol), pixel coordinates of the frame."""
+
+    signature: int
+    x_px: float   # 0..319, image x right
+    y_px: float   # 0..199, image y down
+    width_px: float
+    height_px: float
+
+
+@dataclass(frozen=True, slots=True)
+class VerticalState:
+    """Vertical state relative to the surface below (see vertical.py)."""
+
+    valid: bool                   # lidar seen within timeout and filter initialised
+    height_m: float               # body origin above the surface below (h = z_v − z_s)
+    closing_speed_mps: float      # dh/dt
+    vehicle_altitude_m: float     # z_v, world
+    vehicle_vz_mps: float
+    surface_height_m: float       # z_s, world (ground ≈ 0, deck = its top)
+    surface_vz_mps: float
+    surface_accel_mps2: float
+    surface_epoch: int            # +1 every time the filter re-bases on a surface jump
+    last_rebase_m: float          # size of the last jump (new z_s − old z_s)
+
+    @classmethod
+    def invalid(cls) -> VerticalState:
+        """An all-zero, not-valid state (before the first lidar sample)."""
+        return cls(False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class ApronState:
+    """Everything the planner and controllers need about the apron at time ``t_s``.
+
+    ``camera_stamp_s`` is an addition to docs/interfaces.md (defaulted, so constructors
+    written against the contract still work): the exposure stamp of the latest camera frame
+    the estimator processed, ``-inf`` before the first one.
+    """
+
+    t_s: float
+    tracked: bool                 # horizontal estimate valid (accepted detection within timeout)
+    visible: bool                 # the latest camera frame had an accepted detection
+    time_since_seen_s: float      # inf if never seen
+    rel_position_m: tuple[float, float]   # beacon minus vehicle, ENU axes
+    rel_velocity_mps: tuple[float, float]
+    rel_position_var_m2: tuple[float, float]
+    rel_position_body_m: tuple[float, float]   # the same in the heading (FLU) frame, Figure 8
+    rel_velocity_body_mps: tuple[float, float]
+    apron_position_m: tuple[float, float]      # world ENU = vehicle local position + rel
+    apron_velocity_mps: tuple[float, float]    # = vehicle velocity + rel velocity
+    vertical: VerticalState
+    camera_stamp_s: float = -math.inf
+
+    @classmethod
+    def untracked(cls, t_s: float) -> ApronState:
+        """Nothing known yet: not tracked, never seen, zeros, invalid vertical state."""
+        z = (0.0, 0.0)
+        return cls(t_s, False, False, math.inf, z, z, z, z, z, z, z, VerticalState.invalid())
+
+    def to_array(self) -> list[float]:
+        """Flat ``apron_state_v1`` list of floats (index table: APRON_STATE_V1_FIELDS)."""
+        v = self.vertical
+        return [
+            float(self.t_s), float(self.camera_stamp_s),
+            1.0 if self.tracked else 0.0, 1.0 if self.visible else 0.0,
+            float(self.time_since_seen_s),
+            float(self.rel_position_m[0]), float(self.rel_position_m[1]),
+            float(self.rel_velocity_mps[0]), float(self.rel_velocity_mps[1]),
+            float(self.rel_position_var_m2[0]), float(self.rel_position_var_m2[1]),
+            float(self.rel_position_body_m[0]), float(self.rel_position_body_m[1]),
+            float(self.rel_velocity_body_mps[0]), float(self.rel_velocity_body_mps[1]),
+            float(self.apron_position_m[0]), float(self.apron_position_m[1]),
+            float(self.apron_velocity_mps[0]), float(self.apron_velocity_mps[1]),
+            1.0 if v.valid else 0.0,
+            float(v.height_m), float(v.closing_speed_mps),
+            float(v.vehicle_altitude_m), float(v.vehicle_vz_mps),
+            float(v.surface_height_m), float(v.surface_vz_mps), float(v.surface_accel_mps2),
+            float(v.surface_epoch), float(v.last_rebase_m),
+        ]
+
+    @classmethod
+    def from_array(cls, data: Sequence[float]) -> ApronState:
+        """Inverse of :meth:`to_array`; raises ValueError on a wrong length or a NaN."""
+        a = [float(x) for x in data]
+        if len(a) != APRON_STATE_V1_LEN:
+            raise ValueError(f'{APRON_STATE_LAYOUT}: expected {APRON_STATE_V1_LEN} values, '
+                             f'got {len(a)}')
+        if any(math.isnan(x) for x in a):
+            raise ValueError(f'{APRON_STATE_LAYOUT}: NaN in data')
+        vertical = VerticalState(a[19] > 0.5, a[20], a[21], a[22], a[23], a[24], a[25], a[26],
+                                 round(a[27]), a[28])
+        return cls(
+            t_s=a[0], tracked=a[2] > 0.5, visible=a[3] > 0.5, time_since_seen_s=a[4],
+            rel_position_m=(a[5], a[6]), rel_velocity_mps=(a[7], a[8]),
+            rel_position_var_m2=(a[9], a[10]), rel_position_body_m=(a[11], a[12]),
+            rel_velocity_body_mps=(a[13], a[14]), apron_position_m=(a[15], a[16]),
+            apron_velocity_mps=(a[17], a[18]), vertical=vertical, camera_stamp_s=a[1])

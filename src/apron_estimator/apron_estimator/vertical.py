@@ -1,0 +1,355 @@
+"""Vertical state relative to the (heaving) surface below: a 5-state Kalman filter (pure).
+
+Beyond the paper (which feeds the raw LidarLite range to the altitude loop, Figure 7c).
+State ``x = [z_v, v_v, z_s, v_s, a_s]``: vehicle altitude and vertical speed (world, body
+origin), surface height, speed and acceleration. Model, with the vehicle's vertical
+acceleration a (ENU, gravity removed) as a zero-order-held input:
+
+    ż_v = v_v, v̇_v = a + w_v;    ż_s = v_s, v̇_s = a_s, ȧ_s = −a_s/τ + w_s   (Singer)
+
+Discrete: z_v ← z_v + v_v dt + Δp, v_v ← v_v + Δv (exact integral of the held input),
+z_s ← z_s + v_s dt + a_s dt²/2, v_s ← v_s + a_s dt, a_s ← φ a_s with φ = exp(−dt/τ);
+Q_v = q_v [[dt³/3, dt²/2], [dt²/2, dt]], Q_s = q_s [[dt⁵/20, dt⁴/8, dt³/6], [·, dt³/3, dt²/2],
+[·, ·, dt]] with q_s = 2σ_a²/τ and Q_s[a,a] = σ_a²(1 − φ²) (the stationary variance).
+``surface_model='velocity'`` drops a_s (a ≡ 0, white surface acceleration with the same
+low-frequency PSD 2σ_a²τ): the two-state model for comparison.
+
+Measurements (scalar updates, P ← P − c cᵀ/S with c = P Hᵀ):
+lidar h = range·cosφ·cosθ = z_v − z_s (H = [1, 0, −1, 0, 0]); altitude z = z_v; optionally
+vertical speed v = v_v.
+
+Surface jumps (the deck edge passing under the lidar) are *re-based*, never filtered: a lidar
+innovation beyond max(jump_threshold_m, jump_sigma·√S) is held back; ``jump_confirm`` such
+samples in a row of the same sign and within ``jump_consistency_m`` of each other re-base
+z_s := z_v − h (v_s, a_s := 0, their covariance re-inflated), increment ``surface_epoch``.
+A shorter run is a spike and is discarded (counted in ``rejected['outlier']``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+from apron_estimator import _validate as chk
+from apron_estimator.horizontal import AccelIntegrator
+from apron_estimator.types import VerticalState
+
+
+@dataclass(frozen=True)
+class VerticalParams:
+    """Vertical filter parameters (σ are standard deviations)."""
+
+    sigma_lidar_m: float = 0.03
+    sigma_altitude_m: float = 0.3          # local position z (GPS / EKF)
+    sigma_vz_mps: float = 0.2              # local velocity z; used if use_vz
+    use_vz: bool = True
+    vehicle_accel_psd_m2ps3: float = 0.5   # q_v: error of the acceleration input
+    surface_accel_sigma_mps2: float = 1.0  # σ_a: stationary σ of the deck acceleration
+    surface_tau_s: float = 1.5             # τ of the Singer (Gauss-Markov) deck acceleration
+    surface_model: str = 'accel'           # 'accel' (3 surface states) | 'velocity' (2)
+    jump_threshold_m: float = 0.2
+    jump_sigma: float = 6.0
+    jump_confirm: int = 3                  # consecutive consistent samples to re-base
+    jump_consistency_m: float = 0.15
+    jump_window_s: float = 0.3             # a pending run older than this starts over
+    rebase_vs_sigma_mps: float = 1.0       # σ of v_s after a re-base
+    altitude_gate: float = 25.0            # NIS gate of the altitude / vz updates
+    lidar_timeout_s: float = 0.5
+    range_min_m: float = 0.05
+    range_max_m: float = 40.0
+    max_tilt_rad: float = 0.7              # no lidar fusion beyond this roll/pitch
+    late_tolerance_s: float = 0.05         # older stamps (vs the filter) are applied 'now'
+
+    def __post_init__(self) -> None:
+        o = 'VerticalParams'
+        for name in ('sigma_lidar_m', 'sigma_altitude_m', 'sigma_vz_mps',
+                     'surface_accel_sigma_mps2', 'surface_tau_s', 'jump_threshold_m',
+                     'jump_sigma', 'jump_consistency_m', 'jump_window_s',
+                     'rebase_vs_sigma_mps', 'altitude_gate', 'lidar_timeout_s',
+                     'range_max_m', 'max_tilt_rad'):
+            chk.positive(o, name, getattr(self, name))
+        chk.non_negative(o, 'vehicle_accel_psd_m2ps3', self.vehicle_accel_psd_m2ps3)
+        chk.non_negative(o, 'range_min_m', self.range_min_m)
+        chk.non_negative(o, 'late_tolerance_s', self.late_tolerance_s)
+        chk.integer_at_least(o, 'jump_confirm', self.jump_confirm, 1)
+        if self.range_min_m >= self.range_max_m:
+            raise ValueError(f'{o}.range_min_m must be < range_max_m')
+        if self.surface_model not in ('accel', 'velocity'):
+            raise ValueError(f"{o}.surface_model must be 'accel' or 'velocity', "
+                             f'got {self.surface_model!r}')
+        if not isinstance(self.use_vz, bool):
+            raise ValueError(f'{o}.use_vz must be a bool, got {self.use_vz!r}')
+        if self.max_tilt_rad >= math.pi / 2:
+            raise ValueError(f'{o}.max_tilt_rad must be < pi/2')
+
+
+class VerticalFilter:
+    """The 5-state vertical Kalman filter with surface re-basing (see module docstring)."""
+
+    def __init__(self, params: VerticalParams | None = None) -> None:
+        self.params = params if params is not None else VerticalParams()
+        self._accel_state = self.params.surface_model == 'accel'
+        self.accel = AccelIntegrator(history_s=2.0)
+        self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'range': 0, 'tilt': 0,
+                                         'outlier': 0, 'altitude_gated': 0, 'dropout': 0}
+        self.reset()
+
+    def reset(self) -> None:
+        self.x = [0.0] * 5
+        self.P = [[0.0] * 5 for _ in range(5)]
+        self.t: float | None = None          # filter time
+        self.initialised = False
+        self.surface_epoch = 0
+        self.last_rebase_m = 0.0
+        self.t_lidar_ok: float | None = None
+        self.last_h_m: float | None = None   # last tilt-corrected lidar height (raw)
+        self.last_range_m: float | None = None
+        self.t_last_range: float | None = None  # stamp of last_range_m
+        self._t_src = {'lidar': -math.inf, 'alt': -math.inf, 'accel': -math.inf}
+        self._alt: tuple[float, float | None] | None = None  # last (z, vz) before init
+        self._pending: list[tuple[float, float]] = []         # (t, innovation) of a jump run
+
+    # -- prediction ------------------------------------------------------------------------
+    def _predict(self, t_s: float) -> None:
+        """(Singer) model over [self.t, t_s]; see the module docstring."""
+        dt = t_s - self.t
+        if dt <= 0.0:
+            return
+        p = self.params
+        x = self.x
+        dp, dv, _, _ = self.accel.displacement(self.t, t_s)
+        x[0] += x[1] * dt + dp
+        x[1] += dv
+        dt2 = dt * dt
+        h2 = 0.5 * dt2
+        sa2 = p.surface_accel_sigma_mps2 ** 2
+        if self._accel_state:
+            phi = math.exp(-dt / p.surface_tau_s)
+            qs = 2.0 * sa2 / p.surface_tau_s
+            qaa = sa2 * (1.0 - phi * phi)
+        else:
+            phi = 0.0
+            qs = 2.0 * sa2 * p.surface_tau_s
+            qaa = 0.0
+        x[2] += x[3] * dt + h2 * x[4]
+        x[3] += x[4] * dt
+        x[4] *= phi
+        P = self.P
+        # M = F P (row operations)
+        r0 = [a + dt * b for a, b in zip(P[0], P[1], strict=True)]
+        r1 = P[1]
+        r2 = [a + dt * b + h2 * c for a, b, c in zip(P[2], P[3], P[4], strict=True)]
+        r3 = [a + dt * b for a, b in zip(P[3], P[4], strict=True)]
+        r4 = [phi * a for a in P[4]]
+        # P = M Fᵀ (the same operations on the columns)
+        new = []
+        for r in (r0, r1, r2, r3, r4):
+            new.append([r[0] + dt * r[1], r[1], r[2] + dt * r[3] + h2 * r[4],
+                        r[3] + dt * r[4], phi * r[4]])
+        dt3 = dt2 * dt
+        qv = p.vehicle_accel_psd_m2ps3
+        new[0][0] += qv * dt3 / 3.0
+        new[0][1] += qv * h2
+        new[1][0] += qv * h2
+        new[1][1] += qv * dt
+        if self._accel_state:
+            q22, q23, q24 = qs * dt3 * dt2 / 20.0, qs * dt3 * dt / 8.0, qs * dt3 / 6.0
+            q33, q34 = qs * dt3 / 3.0, qs * h2
+            new[2][2] += q22
+            new[2][3] += q23
+            new[3][2] += q23
+            new[2][4] += q24
+            new[4][2] += q24
+            new[3][3] += q33
+            new[3][4] += q34
+            new[4][3] += q34
+            new[4][4] += qaa
+        else:
+            new[2][2] += qs * dt3 / 3.0
+            new[2][3] += qs * h2
+            new[3][2] += qs * h2
+            new[3][3] += qs * dt
+        self.P = new
+        self.t = t_s
+
+    def _scalar_update(self, c: list[float], s: float, nu: float) -> None:
+        """x ← x + c ν/S, P ← P − c cᵀ/S with c = P Hᵀ (symmetric by construction)."""
+        k = [ci / s for ci in c]
+        x = self.x
+        for i in range(5):
+            x[i] += k[i] * nu
+        self.P = [[pij - ki * cj for pij, cj in zip(row, c, strict=True)]
+                  for row, ki in zip(self.P, k, strict=True)]
+
+    def _advance(self, src: str, t_s: float) -> bool:
+        """Common stamp handling: per-source order, late tolerance, prediction."""
+        if t_s <= self._t_src[src]:
+            self.rejected['out_of_order'] += 1
+            return False
+        if self.t is not None and t_s < self.t - self.params.late_tolerance_s:
+            self.rejected['out_of_order'] += 1
+            return False
+        self._t_src[src] = t_s
+        if self.initialised:
+            self._predict(t_s)
+        return True
+
+    # -- inputs ----------------------------------------------------------------------------
+    def on_accel(self, t_s: float, az_mps2: float) -> None:
+        """Vehicle vertical acceleration (world, gravity removed), held until the next one."""
+        if not (math.isfinite(t_s) and math.isfinite(az_mps2)):
+            self.rejected['nan'] += 1
+            return
+        if t_s <= self._t_src['accel']:
+            self.rejected['out_of_order'] += 1
+            return
+        self._t_src['accel'] = t_s
+        self.accel.add(t_s, az_mps2, 0.0)
+
+    def on_altitude(self, t_s: float, z_m: float, vz_mps: float | None = None) -> None:
+        """Vehicle altitude (local position z, ENU) and optionally its vertical speed."""
+        if not (math.isfinite(t_s) and math.isfinite(z_m)) or (
+                vz_mps is not None and not math.isfinite(vz_mps)):
+            self.rejected['nan'] += 1
+            return
+        if not self._advance('alt', t_s):
+            return
+        if not self.initialised:
+            self._alt = (z_m, vz_mps)
+            return
+        p = self.params
+        P = self.P
+        s = P[0][0] + p.sigma_altitude_m ** 2
+        nu = z_m - self.x[0]
+        if nu * nu / s > p.altitude_gate:
+            self.rejected['altitude_gated'] += 1
+        else:
+            self._scalar_update([row[0] for row in P], s, nu)
+        if vz_mps is not None and p.use_vz:
+            P = self.P
+            s = P[1][1] + p.sigma_vz_mps ** 2
+            nu = vz_mps - self.x[1]
+            if nu * nu / s > p.altitude_gate:
+                self.rejected['altitude_gated'] += 1
+            else:
+                self._scalar_update([row[1] for row in P], s, nu)
+
+    def on_lidar(self, t_s: float, range_m: float | None, roll_rad: float = 0.0,
+                 pitch_rad: float = 0.0) -> None:
+        """Downward lidar range (None = no return); h = range·cosφ·cosθ."""
+        if range_m is None:
+            self.rejected['dropout'] += 1
+            return
+        if not (math.isfinite(t_s) and math.isfinite(range_m) and math.isfinite(roll_rad)
+                and math.isfinite(pitch_rad)):
+            self.rejected['nan' if not math.isinf(range_m) else 'dropout'] += 1
+            return
+        p = self.params
+        if not p.range_min_m <= range_m <= p.range_max_m:
+            self.rejected['range'] += 1
+            return
+        if abs(roll_rad) > p.max_tilt_rad or abs(pitch_rad) > p.max_tilt_rad:
+            self.rejected['tilt'] += 1
+            return
+        if not self._advance('lidar', t_s):
+            return
+        h = range_m * math.cos(roll_rad) * math.cos(pitch_rad)
+        self.last_range_m = range_m
+        self.t_last_range = t_s
+        self.last_h_m = h
+        if not self.initialised:
+            self._initialise(t_s, h)
+            return
+        P = self.P
+        r = p.sigma_lidar_m ** 2
+        c = [row[0] - row[2] for row in P]
+        s = c[0] - c[2] + r
+        nu = h - (self.x[0] - self.x[2])
+        thr = max(p.jump_threshold_m, p.jump_sigma * math.sqrt(max(s, 0.0)))
+        if abs(nu) <= thr:
+            if self._pending:
+                self.rejected['outlier'] += len(self._pending)
+                self._pending = []
+            self._scalar_update(c, s, nu)
+            self.t_lidar_ok = t_s
+            return
+        pend = self._pending
+        if pend and ((nu > 0.0) != (pend[0][1] > 0.0)
+                     or abs(nu - pend[0][1]) > p.jump_consistency_m
+                     or t_s - pend[0][0] > p.jump_window_s):
+            self.rejected['outlier'] += len(pend)
+            pend.clear()
+        pend.append((t_s, nu))
+        if len(pend) >= p.jump_confirm:
+            pend.clear()
+            self._rebase(h)
+            self.t_lidar_ok = t_s
+
+    # -- initialisation and re-basing ------------------------------------------------------
+    def _initialise(self, t_s: float, h: float) -> None:
+        p = self.params
+        if self._alt is not None:
+            zv, vz = self._alt
+            var_zv = p.sigma_altitude_m ** 2
+        else:
+            zv, vz, var_zv = h, None, 1.0
+        vv, var_vv = (vz, p.sigma_vz_mps ** 2) if vz is not None else (0.0, 1.0)
+        self.x = [zv, vv, zv - h, 0.0, 0.0]
+        P = [[0.0] * 5 for _ in range(5)]
+        P[0][0] = var_zv
+        P[1][1] = var_vv
+        self.P = P
+        self.t = t_s
+        self.initialised = True
+        self._rebase_covariance(h)
+        self.t_lidar_ok = t_s
+
+    def _rebase_covariance(self, h: float) -> None:
+        """Surface states re-derived from z_s = z_v − h: copy z_v's correlations."""
+        p = self.params
+        P = self.P
+        r = p.sigma_lidar_m ** 2
+        for j in range(5):
+            P[2][j] = P[j][2] = 0.0
+            P[3][j] = P[j][3] = 0.0
+            P[4][j] = P[j][4] = 0.0
+        P[2][0] = P[0][2] = P[0][0]
+        P[2][1] = P[1][2] = P[0][1]
+        P[2][2] = P[0][0] + r
+        P[3][3] = p.rebase_vs_sigma_mps ** 2
+        P[4][4] = p.surface_accel_sigma_mps2 ** 2 if self._accel_state else 0.0
+
+    def _rebase(self, h: float) -> None:
+        x = self.x
+        new_zs = x[0] - h
+        self.last_rebase_m = new_zs - x[2]
+        self.surface_epoch += 1
+        x[2], x[3], x[4] = new_zs, 0.0, 0.0
+        self._rebase_covariance(h)
+
+    # -- output ----------------------------------------------------------------------------
+    def valid_at(self, t_s: float) -> bool:
+        return (self.initialised and self.t_lidar_ok is not None
+                and t_s - self.t_lidar_ok <= self.params.lidar_timeout_s)
+
+    def state(self, t_s: float) -> VerticalState:
+        """Predicted (mean only) to t_s; does not change the filter. t_s may be slightly in
+        the past (camera exposure stamps): the same kinematics are extrapolated backwards."""
+        if not self.initialised or not math.isfinite(t_s):
+            return VerticalState.invalid()
+        x = self.x
+        dt = t_s - self.t
+        if dt > 0.0:
+            dp, dv, _, _ = self.accel.displacement(self.t, t_s)
+        else:
+            dp = dv = 0.0
+        zv = x[0] + x[1] * dt + dp
+        vv = x[1] + dv
+        phi = math.exp(-dt / self.params.surface_tau_s) if self._accel_state else 0.0
+        zs = x[2] + x[3] * dt + 0.5 * dt * dt * x[4]
+        vs = x[3] + x[4] * dt
+        return VerticalState(
+            valid=self.valid_at(t_s), height_m=zv - zs, closing_speed_mps=vv - vs,
+            vehicle_altitude_m=zv, vehicle_vz_mps=vv, surface_height_m=zs,
+            surface_vz_mps=vs, surface_accel_mps2=x[4] * phi if dt > 0.0 else x[4],
+            surface_epoch=self.surface_epoch, last_rebase_m=self.last_rebase_m)
