@@ -1,0 +1,255 @@
+"""Scenarios: nested frozen dataclasses loaded from YAML with strict validation.
+
+``load_scenario(name_or_path)`` accepts a built-in name (``builtin_names()``, the YAML files in
+``deck_simulator/data/``) or a path to a YAML file. Unknown keys are rejected, types and ranges
+are checked, and every error message carries the source and the key path, e.g.
+``scenario 'x.yaml': apron.heave.stroke_m must be > 0, got -1``.
+
+The ``vehicle`` and ``sensors`` sections override fields of
+:class:`deck_simulator.vehicle.VehicleParams` and :class:`deck_simulator.sensors.SensorParams`
+(same names). ``faults`` is reserved for fault injection (a later issue): only ``[]`` is
+accepted now.
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+import math
+from pathlib import Path
+import typing
+from typing import Any
+
+import yaml
+
+from deck_simulator.sensors import SensorParams
+from deck_simulator.vehicle import VehicleParams
+
+DATA_DIR = Path(__file__).resolve().parent / 'data'
+
+HEAVE_MODELS = ('none', 'triangle', 'sine', 'sea_state')
+SPECTRA = ('jonswap', 'pierson_moskowitz')
+_HEAVE_KEYS = {
+    'none': {'model'},
+    'triangle': {'model', 'stroke_m', 'speed_mps'},
+    'sine': {'model', 'amplitude_m', 'period_s'},
+    'sea_state': {'model', 'significant_height_m', 'peak_period_s', 'spectrum', 'components',
+                  'jonswap_gamma'},
+}
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _req(cond: bool, name: str, rule: str, value: Any) -> None:
+    if not cond:
+        raise ValueError(f'{name} {rule}, got {value!r}')
+
+
+@dataclass(frozen=True, slots=True)
+class HeaveSpec:
+    """Deck heave model and its parameters (only the chosen model's keys may be given)."""
+
+    model: str = 'none'
+    stroke_m: float = 0.30           # triangle: peak-to-peak (Table 3: 300 mm)
+    speed_mps: float = 0.09          # triangle: constant speed (Table 3: 90 mm/s)
+    amplitude_m: float = 0.25        # sine
+    period_s: float = 6.0            # sine
+    significant_height_m: float = 1.0   # sea_state: Hs = 4 √m0
+    peak_period_s: float = 7.0       # sea_state: Tp
+    spectrum: str = 'jonswap'        # sea_state: jonswap | pierson_moskowitz
+    components: int = 80             # sea_state: number of sinusoids
+    jonswap_gamma: float = 3.3       # sea_state: JONSWAP peak enhancement
+
+    def __post_init__(self) -> None:
+        _req(self.model in HEAVE_MODELS, 'model', f'must be one of {list(HEAVE_MODELS)}',
+             self.model)
+        for name in ('stroke_m', 'speed_mps', 'period_s', 'peak_period_s'):
+            v = getattr(self, name)
+            _req(_finite(v) and v > 0, name, 'must be > 0', v)
+        for name in ('amplitude_m', 'significant_height_m'):
+            v = getattr(self, name)
+            _req(_finite(v) and v >= 0, name, 'must be >= 0', v)
+        _req(self.spectrum in SPECTRA, 'spectrum', f'must be one of {list(SPECTRA)}',
+             self.spectrum)
+        _req(isinstance(self.components, int) and 2 <= self.components <= 1000, 'components',
+             'must be an integer in [2, 1000]', self.components)
+        _req(_finite(self.jonswap_gamma) and self.jonswap_gamma >= 1.0, 'jonswap_gamma',
+             'must be >= 1', self.jonswap_gamma)
+
+
+@dataclass(frozen=True, slots=True)
+class ApronSpec:
+    position_m: tuple[float, float] = (-3.2, -2.0)      # beacon / pad centre, world ENU
+    size_m: tuple[float, float] = (1.05, 0.85)          # x × y extent (Table 3)
+    mean_height_m: float = 0.60                         # pad top above ground
+    heave: HeaveSpec = field(default_factory=HeaveSpec)
+    drift_velocity_mps: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        _req(all(v > 0 for v in self.size_m), 'size_m', 'must be > 0', self.size_m)
+        _req(self.mean_height_m >= 0, 'mean_height_m', 'must be >= 0', self.mean_height_m)
+
+
+@dataclass(frozen=True, slots=True)
+class WindSpec:
+    """Mean wind plus Ornstein–Uhlenbeck gusts (per axis, stationary σ, correlation τ)."""
+
+    mean_mps: tuple[float, float] = (0.0, 0.0)
+    gust_std_mps: float = 0.0
+    gust_tau_s: float = 2.0
+    vertical_gust_ratio: float = 0.3      # σ_z / σ_xy
+
+    def __post_init__(self) -> None:
+        _req(self.gust_std_mps >= 0, 'gust_std_mps', 'must be >= 0', self.gust_std_mps)
+        _req(self.gust_tau_s > 0, 'gust_tau_s', 'must be > 0', self.gust_tau_s)
+        _req(self.vertical_gust_ratio >= 0, 'vertical_gust_ratio', 'must be >= 0',
+             self.vertical_gust_ratio)
+
+
+@dataclass(frozen=True, slots=True)
+class RandomizeSpec:
+    """Per-run randomisation drawn from the seed (noise streams are always seeded)."""
+
+    start_offset_m: float = 0.0          # uniform in a disc of this radius
+    start_yaw_rad: float = 0.0           # uniform in ± this
+    heave_phase: bool = True             # random triangle/sine phase
+    gps_bias: bool = True                # initial GPS/baro bias drawn from its stationary law
+    wind_direction_rad: float = 0.0      # mean wind rotated by uniform ± this
+    mean_height_m: float = 0.0           # deck mean height jitter, uniform ± this
+
+    def __post_init__(self) -> None:
+        for name in ('start_offset_m', 'start_yaw_rad', 'wind_direction_rad', 'mean_height_m'):
+            v = getattr(self, name)
+            _req(v >= 0, name, 'must be >= 0', v)
+
+
+@dataclass(frozen=True, slots=True)
+class Scenario:
+    name: str = 'default'
+    timeout_s: float = 120.0
+    start_position_m: tuple[float, float, float] = (-2.8, -0.3, 2.0)
+    start_yaw_rad: float = 0.0
+    apron: ApronSpec = field(default_factory=ApronSpec)
+    wind: WindSpec = field(default_factory=WindSpec)
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    sensors: SensorParams = field(default_factory=SensorParams)
+    randomize: RandomizeSpec = field(default_factory=RandomizeSpec)
+    faults: tuple = ()
+    crash_speed_mps: float = 1.0
+    max_tilt_rad: float = 0.35
+
+    def __post_init__(self) -> None:
+        _req(self.timeout_s > 0, 'timeout_s', 'must be > 0', self.timeout_s)
+        _req(self.start_position_m[2] > 0, 'start_position_m', 'must have z > 0',
+             self.start_position_m)
+        _req(self.faults == (), 'faults', 'fault injection is not implemented yet; use []',
+             self.faults)
+        _req(self.crash_speed_mps > 0, 'crash_speed_mps', 'must be > 0', self.crash_speed_mps)
+        _req(0 < self.max_tilt_rad < math.pi / 2, 'max_tilt_rad', 'must be in (0, π/2)',
+             self.max_tilt_rad)
+
+
+# --- generic YAML → dataclass builder ---------------------------------------------------------
+
+def _convert(tp: Any, value: Any, path: str) -> Any:
+    origin = typing.get_origin(tp)
+    if is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ValueError(f'{path} must be a mapping, got {value!r}')
+        return _build(tp, value, path)
+    if tp is float:
+        if not _finite(value):
+            raise ValueError(f'{path} must be a finite number, got {value!r}')
+        return float(value)
+    if tp is int:
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise ValueError(f'{path} must be an integer, got {value!r}')
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f'{path} must be true or false, got {value!r}')
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ValueError(f'{path} must be a string, got {value!r}')
+        return value
+    if tp is tuple or origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ValueError(f'{path} must be a list, got {value!r}')
+        args = typing.get_args(tp)
+        if not args or (len(args) == 2 and args[1] is Ellipsis):
+            inner = args[0] if args else Any
+            return tuple(value if inner is Any else
+                         (_convert(inner, v, f'{path}[{i}]') for i, v in enumerate(value)))
+        if len(value) != len(args):
+            raise ValueError(f'{path} must have {len(args)} entries, got {value!r}')
+        return tuple(_convert(a, v, f'{path}[{i}]') for i, (a, v) in
+                     enumerate(zip(args, value, strict=True)))
+    return value
+
+
+def _build(cls: type, data: dict, path: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in fields(cls)]
+    allowed = set(names)
+    if cls is HeaveSpec:
+        model = data.get('model', 'none')
+        if model not in HEAVE_MODELS:
+            raise ValueError(f'{path}.model must be one of {list(HEAVE_MODELS)}, got {model!r}')
+        allowed = _HEAVE_KEYS[model]
+    kwargs = {}
+    for key, value in data.items():
+        where = f'{path}.{key}' if path else str(key)
+        if key not in allowed:
+            raise ValueError(f'unknown key {where!r} (allowed: {sorted(allowed)})')
+        kwargs[key] = _convert(hints[key], value, where)
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:
+        raise ValueError(f'{path + "." if path else ""}{exc}') from None
+    except TypeError as exc:  # pragma: no cover - only with malformed dataclasses
+        raise ValueError(f'{path}: {exc}') from None
+
+
+def scenario_from_dict(data: dict, source: str = '<dict>') -> Scenario:
+    """Build and validate a :class:`Scenario`; ValueError names the source and key path."""
+    if not isinstance(data, dict):
+        raise ValueError(f'scenario {source!r}: top level must be a mapping, got {data!r}')
+    try:
+        return _build(Scenario, data, '')
+    except ValueError as exc:
+        raise ValueError(f'scenario {source!r}: {exc}') from None
+
+
+def builtin_names() -> list[str]:
+    """Names of the scenarios shipped in deck_simulator/data/."""
+    return sorted(p.stem for p in DATA_DIR.glob('*.yaml'))
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """A built-in scenario by name, or a YAML file by path."""
+    text = str(name_or_path)
+    path = Path(text)
+    if text in builtin_names():
+        path = DATA_DIR / f'{text}.yaml'
+    elif not path.is_file():
+        raise ValueError(f'scenario {text!r}: no such built-in ({", ".join(builtin_names())}) '
+                         'or file')
+    try:
+        data = yaml.safe_load(path.read_text(encoding='utf-8'))
+    except yaml.YAMLError as exc:
+        raise ValueError(f'scenario {text!r}: invalid YAML: {exc}') from None
+    if data is None:
+        data = {}
+    return scenario_from_dict(data, text)
+
+
+def default_value(cls: type, name: str) -> Any:
+    """The default of a dataclass field (README tables)."""
+    for f in fields(cls):
+        if f.name == name:
+            if f.default is not MISSING:
+                return f.default
+            return f.default_factory()  # type: ignore[misc]
+    raise KeyError(name)

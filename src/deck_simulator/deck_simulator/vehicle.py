@@ -1,0 +1,292 @@
+"""Truth model of the quadcopter: mixer (1), rigid-body dynamics (2), ground effect (3)-(4).
+
+Pure and deterministic (no rclpy, no randomness; wind is an input). State is kept in plain
+floats and :meth:`Vehicle.step` is one flat function because it runs at >= 400 Hz inside
+campaigns of thousands of landings.
+
+Model (paper section 2, Table 2):
+
+* mixer (1): ``u_z = F1+F2+F3+F4``, ``u_φ = L(F2−F4)``, ``u_θ = L(F3−F1)``,
+  ``u_ψ = c_d(−F1+F2−F3+F4)``: a plus configuration with motor 1 on the nose (+x body),
+  2 on the left (+y), 3 at the tail (−x), 4 on the right (−y); 1/3 and 2/4 spin in opposite
+  directions. FLU signs: positive roll lowers the right side, positive pitch the nose.
+* rotational dynamics (2) integrated on the Euler angles and their rates (small-angle model
+  of the paper, semi-implicit Euler): ``φ̈ = (Jy−Jz)/Jx θ̇ψ̇ + u_φ/Jx`` etc.
+* translational dynamics (2)-(3) in ENU: ``p̈ = γ u_z R e3 / m − g e3 + δ`` where
+  ``R e3`` is the third column of :func:`deckland_common.frames.rot_body_to_world` and
+  ``δ = F_drag / m`` the wind disturbance (quadratic body drag plus linear rotor drag on the
+  air-relative velocity).
+* ground effect (4): ``γ = 1 / (1 − ρ r² / (4 z_p)²)`` with the *true* ρ (``rho_true``) and
+  ``z_p`` from the rotor plane to the surface below, clamped at ``ge_min_rotor_height_m`` and
+  ``ge_max_gain``. Decision (paper ambiguous): (3) scales only the vertical thrust by γ; the
+  rotor thrust is what ground effect changes, so γ scales the whole thrust vector. For the
+  vertical axis this is exactly (3).
+* actuators: each motor is a first-order lag (``motor_tau_s``) between 0 and
+  ``thrust_to_weight · m g / 4``.
+* attitude controller emulating the autopilot's 400 Hz loop: angle P → rate PI, like PX4's
+  ``mc_att_control`` / ``mc_rate_control`` (gains in physical units, torque = J · α_cmd).
+  The collective thrust command passes through; when a motor would exceed its limit the
+  collective is lowered so the attitude torques are kept (attitude priority, as PX4's mixer).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+try:  # the controller-side formula, written by the dob_altitude package
+    from dob_altitude.ground_effect import ground_effect_gain as _shared_gain
+except ImportError:  # pragma: no cover - depends on the other package's progress
+    _shared_gain = None
+
+
+def _local_ground_effect_gain(rho: float, prop_radius_m: float, rotor_height_m: float,
+                              min_height_m: float, max_gain: float) -> float:
+    """(4) γ = 1 / (1 − ρ r² / (4 z_p)²), z_p clamped below at min_height_m, γ at max_gain."""
+    z = rotor_height_m if rotor_height_m > min_height_m else min_height_m
+    q = rho * prop_radius_m * prop_radius_m / (16.0 * z * z)
+    if q >= 1.0 - 1.0 / max_gain:
+        return max_gain
+    return 1.0 / (1.0 - q)
+
+
+ground_effect_gain = _shared_gain if _shared_gain is not None else _local_ground_effect_gain
+
+
+def _positive(name: str, value: float) -> None:
+    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+        raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
+
+
+def _non_negative(name: str, value: float) -> None:
+    if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+        raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleParams:
+    """Truth parameters of the simulated quadcopter (Table 2 plus actuator/drag/controller)."""
+
+    mass_kg: float = 2.71
+    inertia_kgm2: tuple[float, float, float] = (0.0172, 0.0143, 0.0221)
+    arm_length_m: float = 0.225
+    yaw_moment_coeff_m: float = 0.016      # c_d in (1), torque per newton of thrust
+    gravity_mps2: float = 9.81
+    motor_tau_s: float = 0.04
+    thrust_to_weight: float = 2.0          # total max thrust / (m g)
+    rho_true: float = 1.4                  # true ρ of (4); the controller's nominal is 1.0
+    prop_radius_m: float = 0.127
+    rotor_height_m: float = 0.05           # rotor plane above the body origin
+    gear_height_m: float = 0.15            # body origin above the bottom of the gear
+    gear_half_width_m: float = 0.2         # half-width of the square gear footprint
+    ge_min_rotor_height_m: float = 0.05
+    ge_max_gain: float = 1.5
+    drag_linear_n_per_mps: float = 0.25    # rotor (induced) drag, horizontal
+    drag_quad_h_kg_per_m: float = 0.06     # ½ ρ_air C_D A, side area
+    drag_quad_v_kg_per_m: float = 0.15     # ½ ρ_air C_D A, top area
+    att_p: float = 6.0                     # roll/pitch angle gain, 1/s
+    yaw_p: float = 2.8                     # yaw angle gain, 1/s
+    rate_p: float = 20.0                   # roll/pitch rate gain, 1/s (α_cmd per rate error)
+    rate_i: float = 5.0                    # roll/pitch rate integral gain, 1/s²
+    yaw_rate_p: float = 8.0
+    yaw_rate_i: float = 2.0
+    rate_i_limit_radps2: float = 5.0       # |integral term| limit, as an angular acceleration
+    max_rate_radps: float = 3.8            # roll/pitch rate limit (≈ 220°/s, PX4 default)
+    max_yaw_rate_radps: float = 3.5
+
+    def __post_init__(self) -> None:
+        for name in ('mass_kg', 'arm_length_m', 'yaw_moment_coeff_m', 'gravity_mps2',
+                     'motor_tau_s', 'prop_radius_m', 'ge_min_rotor_height_m',
+                     'gear_height_m', 'gear_half_width_m', 'att_p', 'yaw_p', 'rate_p',
+                     'yaw_rate_p', 'max_rate_radps', 'max_yaw_rate_radps'):
+            _positive(name, getattr(self, name))
+        for name in ('rho_true', 'rotor_height_m', 'drag_linear_n_per_mps',
+                     'drag_quad_h_kg_per_m', 'drag_quad_v_kg_per_m', 'rate_i', 'yaw_rate_i',
+                     'rate_i_limit_radps2'):
+            _non_negative(name, getattr(self, name))
+        if len(self.inertia_kgm2) != 3:
+            raise ValueError(f'inertia_kgm2 must have 3 entries, got {self.inertia_kgm2!r}')
+        for v in self.inertia_kgm2:
+            _positive('inertia_kgm2', v)
+        if not (isinstance(self.thrust_to_weight, int | float) and self.thrust_to_weight > 1.0):
+            raise ValueError(f'thrust_to_weight must be > 1, got {self.thrust_to_weight!r}')
+        if not (isinstance(self.ge_max_gain, int | float) and self.ge_max_gain >= 1.0):
+            raise ValueError(f'ge_max_gain must be >= 1, got {self.ge_max_gain!r}')
+
+    @property
+    def motor_max_n(self) -> float:
+        return self.thrust_to_weight * self.mass_kg * self.gravity_mps2 / 4.0
+
+    def gamma(self, rotor_height_m: float) -> float:
+        """True ground-effect gain (4) at a rotor-plane height above the surface."""
+        return ground_effect_gain(self.rho_true, self.prop_radius_m, rotor_height_m,
+                                  self.ge_min_rotor_height_m, self.ge_max_gain)
+
+
+def mix(u_z: float, u_phi: float, u_theta: float, u_psi: float, arm_length_m: float,
+        yaw_moment_coeff_m: float) -> tuple[float, float, float, float]:
+    """Inverse of (1): motor forces (F1, F2, F3, F4) producing (u_z, u_φ, u_θ, u_ψ)."""
+    b = 0.25 * u_z
+    r = 0.5 * u_phi / arm_length_m
+    p = 0.5 * u_theta / arm_length_m
+    y = 0.25 * u_psi / yaw_moment_coeff_m
+    return b - p - y, b + r + y, b + p - y, b - r + y
+
+
+def unmix(f1: float, f2: float, f3: float, f4: float, arm_length_m: float,
+          yaw_moment_coeff_m: float) -> tuple[float, float, float, float]:
+    """(1): (u_z, u_φ, u_θ, u_ψ) from the motor forces."""
+    return (f1 + f2 + f3 + f4, arm_length_m * (f2 - f4), arm_length_m * (f3 - f1),
+            yaw_moment_coeff_m * (-f1 + f2 - f3 + f4))
+
+
+class Vehicle:
+    """Quadcopter truth state and its 400 Hz attitude loop; stepped by :meth:`step`.
+
+    Positions are of the body origin in world ENU; attitude is Z-Y-X Euler (FLU in ENU).
+    The command (roll, pitch, yaw, collective thrust) is what the autopilot receives.
+    """
+
+    __slots__ = (
+        '_a_mot', '_dt_cache', 'ax', 'ay', 'az', 'cmd_pitch', 'cmd_roll', 'cmd_thrust',
+        'cmd_yaw', 'f1', 'f2', 'f3', 'f4', 'gamma', 'i_p', 'i_q', 'i_r', 'params', 'pitch',
+        'pitch_rate', 'roll', 'roll_rate', 'vx', 'vy', 'vz', 'x', 'y', 'yaw', 'yaw_rate', 'z',
+    )
+
+    def __init__(self, params: VehicleParams, position_m: tuple[float, float, float],
+                 yaw_rad: float = 0.0, thrust_n: float | None = None) -> None:
+        self.params = params
+        self.x, self.y, self.z = (float(v) for v in position_m)
+        self.vx = self.vy = self.vz = 0.0
+        self.ax = self.ay = self.az = 0.0
+        self.roll = self.pitch = 0.0
+        self.yaw = float(yaw_rad)
+        self.roll_rate = self.pitch_rate = self.yaw_rate = 0.0
+        self.i_p = self.i_q = self.i_r = 0.0
+        hover = params.mass_kg * params.gravity_mps2 if thrust_n is None else float(thrust_n)
+        self.f1 = self.f2 = self.f3 = self.f4 = min(hover / 4.0, params.motor_max_n)
+        self.cmd_roll = self.cmd_pitch = 0.0
+        self.cmd_yaw = self.yaw
+        self.cmd_thrust = hover
+        self.gamma = 1.0
+        self._dt_cache = -1.0
+        self._a_mot = 0.0
+
+    @property
+    def thrust_n(self) -> float:
+        """Collective rotor thrust u_z the motors really produce now (before γ)."""
+        return self.f1 + self.f2 + self.f3 + self.f4
+
+    def reset_attitude_loop(self) -> None:
+        self.i_p = self.i_q = self.i_r = 0.0
+
+    def step(self, dt_s: float, surface_height_m: float, wind_x: float, wind_y: float,
+             wind_z: float) -> None:
+        """Advance by dt_s (one attitude-loop tick; the caller keeps dt_s <= 1/400 s).
+
+        ``surface_height_m`` is the world height of the surface under the vehicle (for z_p of
+        (4)); ``wind_*`` the air velocity in ENU.
+        """
+        p = self.params
+        if dt_s != self._dt_cache:
+            self._dt_cache = dt_s
+            self._a_mot = 1.0 - math.exp(-dt_s / p.motor_tau_s)
+        jx, jy, jz = p.inertia_kgm2
+        roll, pitch, yaw = self.roll, self.pitch, self.yaw
+        rr, pr, yr = self.roll_rate, self.pitch_rate, self.yaw_rate
+
+        # --- attitude controller (angle P -> rate PI), α_cmd in rad/s² -------------------
+        lim = p.max_rate_radps
+        sp = p.att_p * (self.cmd_roll - roll)
+        sp = lim if sp > lim else (-lim if sp < -lim else sp)
+        e = sp - rr
+        ilim = p.rate_i_limit_radps2
+        i = self.i_p + p.rate_i * e * dt_s
+        i = ilim if i > ilim else (-ilim if i < -ilim else i)
+        self.i_p = i
+        u_phi = jx * (p.rate_p * e + i)
+        sp = p.att_p * (self.cmd_pitch - pitch)
+        sp = lim if sp > lim else (-lim if sp < -lim else sp)
+        e = sp - pr
+        i = self.i_q + p.rate_i * e * dt_s
+        i = ilim if i > ilim else (-ilim if i < -ilim else i)
+        self.i_q = i
+        u_theta = jy * (p.rate_p * e + i)
+        lim = p.max_yaw_rate_radps
+        ey = (self.cmd_yaw - yaw + math.pi) % (2.0 * math.pi) - math.pi
+        sp = p.yaw_p * ey
+        sp = lim if sp > lim else (-lim if sp < -lim else sp)
+        e = sp - yr
+        i = self.i_r + p.yaw_rate_i * e * dt_s
+        i = ilim if i > ilim else (-ilim if i < -ilim else i)
+        self.i_r = i
+        u_psi = jz * (p.yaw_rate_p * e + i)
+
+        # --- mixer: inverse of (1), attitude priority, per-motor limits --------------------
+        L = p.arm_length_m
+        b = 0.25 * self.cmd_thrust
+        dr = 0.5 * u_phi / L
+        dp = 0.5 * u_theta / L
+        dy = 0.25 * u_psi / p.yaw_moment_coeff_m
+        d1, d2, d3, d4 = -dp - dy, dr + dy, dp - dy, -dr + dy
+        fmax = p.motor_max_n
+        dmax = max(d1, d2, d3, d4)
+        if b + dmax > fmax:
+            b = fmax - dmax
+        c1, c2, c3, c4 = b + d1, b + d2, b + d3, b + d4
+        c1 = 0.0 if c1 < 0.0 else (fmax if c1 > fmax else c1)
+        c2 = 0.0 if c2 < 0.0 else (fmax if c2 > fmax else c2)
+        c3 = 0.0 if c3 < 0.0 else (fmax if c3 > fmax else c3)
+        c4 = 0.0 if c4 < 0.0 else (fmax if c4 > fmax else c4)
+        a = self._a_mot
+        f1 = self.f1 + a * (c1 - self.f1)
+        f2 = self.f2 + a * (c2 - self.f2)
+        f3 = self.f3 + a * (c3 - self.f3)
+        f4 = self.f4 + a * (c4 - self.f4)
+        self.f1, self.f2, self.f3, self.f4 = f1, f2, f3, f4
+
+        # --- rotational dynamics (2), torques from (1) --------------------------------------
+        t_phi = L * (f2 - f4)
+        t_theta = L * (f3 - f1)
+        t_psi = p.yaw_moment_coeff_m * (-f1 + f2 - f3 + f4)
+        rr_n = rr + ((jy - jz) / jx * pr * yr + t_phi / jx) * dt_s
+        pr_n = pr + ((jz - jx) / jy * rr * yr + t_theta / jy) * dt_s
+        yr_n = yr + ((jx - jy) / jz * rr * pr + t_psi / jz) * dt_s
+        self.roll_rate, self.pitch_rate, self.yaw_rate = rr_n, pr_n, yr_n
+        self.roll = roll + rr_n * dt_s
+        self.pitch = pitch + pr_n * dt_s
+        yaw = yaw + yr_n * dt_s
+        if yaw >= math.pi or yaw < -math.pi:
+            yaw = (yaw + math.pi) % (2.0 * math.pi) - math.pi
+        self.yaw = yaw
+
+        # --- translational dynamics (2)-(3) with ground effect (4) and drag δ --------------
+        zp = self.z + p.rotor_height_m - surface_height_m
+        zmin = p.ge_min_rotor_height_m
+        if zp < zmin:
+            zp = zmin
+        q = p.rho_true * p.prop_radius_m * p.prop_radius_m / (16.0 * zp * zp)
+        gmax = p.ge_max_gain
+        gamma = gmax if q >= 1.0 - 1.0 / gmax else 1.0 / (1.0 - q)
+        self.gamma = gamma
+        cr, sr = math.cos(roll), math.sin(roll)
+        cp, sp_ = math.cos(pitch), math.sin(pitch)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        m = p.mass_kg
+        k = gamma * (f1 + f2 + f3 + f4) / m
+        rx = wx = self.vx - wind_x
+        ry = wy = self.vy - wind_y
+        wz = self.vz - wind_z
+        sh = math.sqrt(wx * wx + wy * wy)
+        kh = (p.drag_linear_n_per_mps + p.drag_quad_h_kg_per_m * sh) / m
+        ax = k * (cr * sp_ * cy + sr * sy) - kh * rx
+        ay = k * (cr * sp_ * sy - sr * cy) - kh * ry
+        az = k * cr * cp - p.gravity_mps2 - p.drag_quad_v_kg_per_m * abs(wz) * wz / m
+        self.ax, self.ay, self.az = ax, ay, az
+        vx = self.vx + ax * dt_s
+        vy = self.vy + ay * dt_s
+        vz = self.vz + az * dt_s
+        self.vx, self.vy, self.vz = vx, vy, vz
+        self.x += vx * dt_s
+        self.y += vy * dt_s
+        self.z += vz * dt_s
