@@ -1,0 +1,131 @@
+"""Horizontal position controller: PID with velocity feed-forward → roll/pitch (FLU).
+
+The paper flies x/y with a PID position loop on the autopilot side (section 4.1.3) and does not
+describe it; this is our own, derived from the translational rows of model (2). With the
+altitude loop holding u_z cφ cθ = m g, (2) gives the horizontal acceleration
+
+    ẍ = g (tan θ cψ + tan φ sψ / cos θ),   ÿ = g (tan θ sψ − tan φ cψ / cos θ),
+
+i.e. in the heading frame (forward f, left l): a_f = g tan θ, a_l = −g tan φ / cos θ, and the
+tilt angle β of R e3 satisfies |a_h| = g tan β. Hence
+
+    θ = atan(a_f / g),   φ = atan(−a_l cos θ / g),
+
+so positive pitch (nose down) accelerates forward and positive roll (right side down)
+accelerates to −y body — the conventions of :mod:`deckland_common.frames`.
+
+Control law (world ENU): a_cmd = k_p e_p + k_d (v_ff − v) + k_i ∫ e_p dt, limited in norm to
+min(max_accel, g tan(max_tilt)). The integrator is frozen while the command is saturated and
+the error would push it further (conditional integration) and is itself clamped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+import math
+
+from deckland_common.frames import world_to_body_xy
+
+
+@dataclass(frozen=True, slots=True)
+class HorizontalParams:
+    """Gains and limits of :class:`HorizontalController` (SI units)."""
+
+    kp: float = 1.2             # 1/s²  position error → acceleration
+    kd: float = 1.8             # 1/s   velocity error → acceleration
+    ki: float = 0.05            # 1/s³  integral of the position error → acceleration
+    max_accel_mps2: float = 3.0
+    max_tilt_rad: float = math.radians(20.0)
+    max_integral_accel_mps2: float = 1.0   # clamp of |k_i ∫e| (each axis)
+    gravity_mps2: float = 9.81
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise ValueError(f'HorizontalParams.{f.name} must be finite, got {value!r}')
+        for name in ('kp', 'max_accel_mps2', 'gravity_mps2'):
+            if getattr(self, name) <= 0.0:
+                raise ValueError(f'HorizontalParams.{name} must be > 0')
+        for name in ('kd', 'ki', 'max_integral_accel_mps2'):
+            if getattr(self, name) < 0.0:
+                raise ValueError(f'HorizontalParams.{name} must be >= 0')
+        if not 0.0 < self.max_tilt_rad < math.radians(60.0):
+            raise ValueError('HorizontalParams.max_tilt_rad must be in (0, 60°)')
+
+
+def accel_to_tilt(ax_mps2: float, ay_mps2: float, yaw_rad: float,
+                  gravity_mps2: float = 9.81) -> tuple[float, float]:
+    """World horizontal acceleration → (roll, pitch) FLU at hover thrust, inverse of (2)."""
+    a_f, a_l = world_to_body_xy(ax_mps2, ay_mps2, yaw_rad)
+    pitch = math.atan(a_f / gravity_mps2)
+    roll = math.atan(-a_l * math.cos(pitch) / gravity_mps2)
+    return roll, pitch
+
+
+class HorizontalController:
+    """PID position controller with velocity feed-forward and tilt/acceleration limits."""
+
+    __slots__ = ('_a_lim', '_ix', '_iy', '_last', 'params', 'rejected')
+
+    def __init__(self, params: HorizontalParams | None = None) -> None:
+        self.params = params or HorizontalParams()
+        p = self.params
+        self._a_lim = min(p.max_accel_mps2, p.gravity_mps2 * math.tan(p.max_tilt_rad))
+        self._ix = 0.0
+        self._iy = 0.0
+        self._last = (0.0, 0.0)
+        self.rejected: dict[str, int] = {'nan': 0, 'bad_dt': 0}
+
+    def reset(self) -> None:
+        """Zero the integrator and the last command."""
+        self._ix = self._iy = 0.0
+        self._last = (0.0, 0.0)
+
+    @property
+    def integral_accel_mps2(self) -> tuple[float, float]:
+        """The integral term k_i ∫e_p currently applied (world ENU)."""
+        return self.params.ki * self._ix, self.params.ki * self._iy
+
+    def step(self, setpoint_m: tuple[float, float], velocity_ff_mps: tuple[float, float],
+             position_m: tuple[float, ...], velocity_mps: tuple[float, ...], yaw_rad: float,
+             dt_s: float) -> tuple[float, float]:
+        """One control step; returns (roll_rad, pitch_rad) in the FLU convention.
+
+        Non-finite inputs are rejected (counted, the last command is returned).
+        """
+        try:
+            sx, sy = float(setpoint_m[0]), float(setpoint_m[1])
+            fx, fy = float(velocity_ff_mps[0]), float(velocity_ff_mps[1])
+            px, py = float(position_m[0]), float(position_m[1])
+            vx, vy = float(velocity_mps[0]), float(velocity_mps[1])
+            yaw = float(yaw_rad)
+        except (TypeError, ValueError, IndexError):
+            self.rejected['nan'] += 1
+            return self._last
+        if not all(map(math.isfinite, (sx, sy, fx, fy, px, py, vx, vy, yaw))):
+            self.rejected['nan'] += 1
+            return self._last
+        if not (math.isfinite(dt_s) and dt_s > 0.0):
+            self.rejected['bad_dt'] += 1
+            return self._last
+        p = self.params
+        ex, ey = sx - px, sy - py
+        # a_cmd = k_p e_p + k_d (v_ff − v) + k_i ∫e_p
+        ux = p.kp * ex + p.kd * (fx - vx)
+        uy = p.kp * ey + p.kd * (fy - vy)
+        ax = ux + p.ki * self._ix
+        ay = uy + p.ki * self._iy
+        norm = math.hypot(ax, ay)
+        saturated = norm > self._a_lim
+        if saturated:
+            k = self._a_lim / norm
+            ax *= k
+            ay *= k
+        # conditional integration: skip while saturated and the error points outward
+        if p.ki > 0.0 and not (saturated and ex * ax + ey * ay > 0.0):
+            i_max = p.max_integral_accel_mps2 / p.ki
+            self._ix = max(-i_max, min(i_max, self._ix + ex * dt_s))
+            self._iy = max(-i_max, min(i_max, self._iy + ey * dt_s))
+        self._last = accel_to_tilt(ax, ay, yaw, p.gravity_mps2)
+        return self._last
