@@ -1,0 +1,383 @@
+"""ROS 2 adapter of the MAVLink bridge (thin: transport + message conversion only).
+
+Decisions live in :mod:`mavlink_bridge.core` and frame/unit conversions in
+:mod:`mavlink_bridge.conversions`; this module owns the pymavlink connection, a background
+reader thread, a 50 Hz housekeeping timer and the ROS publishers, subscribers and services.
+The core runs on ``time.monotonic()`` (link and input freshness are about the real transport);
+published headers carry the node clock (ROS time, sim time when ``use_sim_time``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import threading
+import time
+
+os.environ.setdefault('MAVLINK20', '1')  # before pymavlink.mavutil picks its dialect
+
+from deckland_common.frames import euler_to_quaternion, rot_body_to_world
+from deckland_common.params import (
+    ParameterError,
+    ParamSpec,
+    in_range,
+    one_of,
+    positive,
+)
+from deckland_common.ros_node import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    declare_and_validate,
+    run_node,
+    stamp_to_s,
+)
+from geometry_msgs.msg import QuaternionStamped, TwistStamped, WrenchStamped
+from nav_msgs.msg import Odometry
+from pymavlink import mavutil
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, Range
+from std_msgs.msg import Bool, String
+from std_srvs.srv import SetBool, Trigger
+
+from mavlink_bridge.conversions import (
+    ThrustCalibration,
+    attitude_to_enu,
+    distance_sensor_to_range_m,
+    imu_frd_to_flu,
+    landing_target_ardupilot,
+    landing_target_px4,
+    local_position_ned_to_enu,
+    scaled_imu_to_flu,
+)
+from mavlink_bridge.core import BridgeCore, BridgeParams
+
+PARAMS = [
+    ParamSpec('connection', 'udpin:127.0.0.1:14540',
+              "pymavlink device: 'udpin:HOST:PORT' listens (PX4 SITL/emulator send here), "
+              "'udpout:HOST:PORT' or 'tcp:HOST:PORT' connects, '/dev/ttyACM0' is serial",
+              lambda v: bool(v.strip()), 'must not be empty'),
+    positive('baud', 921600, 'serial baud rate (serial devices only)'),
+    one_of('autopilot', 'px4', ('px4', 'ardupilot'), 'autopilot flavour'),
+    in_range('system_id', 1, 1, 255, "our MAVLink system id (normally the vehicle's)"),
+    in_range('component_id', 191, 1, 255, 'our component id (191 = onboard computer)'),
+    in_range('target_component', 1, 0, 255, 'autopilot component id'),
+    positive('mass_kg', 2.71, 'vehicle mass for the thrust calibration (paper Table 2)'),
+    positive('gravity_mps2', 9.81, 'gravity for the thrust calibration'),
+    ParamSpec('hover_thrust_norm', 0.5,
+              'normalised thrust that hovers (PX4 MPC_THR_HOVER, ArduPilot MOT_THST_HOVER)',
+              lambda v: 0.0 < v < 1.0, 'must be in (0, 1)'),
+    in_range('thrust_expo', 0.0, 0.0, 1.0,
+             'residual thrust curve expo e in F = Fmax(e n^2 + (1-e) n); 0 = linear'),
+    positive('input_timeout_s', 0.2, 'max age of control/thrust and control/attitude'),
+    positive('link_timeout_s', 3.0, 'autopilot heartbeat age that means link lost'),
+    positive('stream_rate_hz', 100.0, 'max SET_ATTITUDE_TARGET rate'),
+    ParamSpec('offboard_warmup_s', 1.2, 'setpoint streaming before the OFFBOARD request',
+              lambda v: v > 1.0, 'must be > 1.0'),
+    ParamSpec('signing_key_file', '', 'MAVLink 2 signing key file (32 raw bytes or 64 hex '
+              'characters); empty = unsigned'),
+    ParamSpec('landing_target_output', False,
+              'send LANDING_TARGET from apron/odom (PX4: LOCAL_NED position, ArduPilot: body)'),
+    ParamSpec('map_frame', 'map', 'world frame id (ENU)'),
+    ParamSpec('base_frame', 'base_link', 'body frame id (FLU)'),
+    ParamSpec('lidar_frame', 'lidar_link', 'frame id of vehicle/range'),
+    positive('range_field_of_view_rad', 0.008, 'Range.field_of_view (LidarLite v3 beam)'),
+]
+
+
+def _load_signing_key(path: str) -> bytes:
+    try:
+        with open(path, 'rb') as f:
+            raw = f.read().strip()
+    except OSError as exc:
+        raise ParameterError(f"parameter 'signing_key_file': cannot read {path!r}: {exc}") \
+            from exc
+    if len(raw) == 64:
+        try:
+            return bytes.fromhex(raw.decode('ascii'))
+        except ValueError:
+            pass
+    if len(raw) != 32:
+        raise ParameterError("parameter 'signing_key_file': need 32 raw bytes or 64 hex "
+                             f'characters, got {len(raw)} bytes')
+    return raw
+
+
+class MavlinkBridgeNode(Node):
+    """The ``mavlink_bridge`` node; see the package README for its interface."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('mavlink_bridge', **kwargs)
+        cfg = declare_and_validate(self, PARAMS)
+        self.cfg = cfg
+        try:
+            calib = ThrustCalibration(mass_kg=cfg['mass_kg'], gravity_mps2=cfg['gravity_mps2'],
+                                      hover_thrust_norm=cfg['hover_thrust_norm'],
+                                      expo=cfg['thrust_expo'])
+            self.core = BridgeCore(BridgeParams(
+                autopilot=cfg['autopilot'], input_timeout_s=cfg['input_timeout_s'],
+                link_timeout_s=cfg['link_timeout_s'], stream_rate_hz=cfg['stream_rate_hz'],
+                offboard_warmup_s=cfg['offboard_warmup_s'],
+                target_component=cfg['target_component'], thrust=calib))
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from exc
+        self._lock = threading.Lock()
+        self._t0 = time.monotonic()
+        mavutil.set_dialect('common')  # MAVLink 2 common (MAVLINK20 set above)
+        self.conn = mavutil.mavlink_connection(
+            cfg['connection'], baud=cfg['baud'], source_system=cfg['system_id'],
+            source_component=cfg['component_id'], dialect='common')
+        if cfg['signing_key_file']:
+            self.conn.setup_signing(_load_signing_key(cfg['signing_key_file']),
+                                    sign_outgoing=True)
+        self.errors = {'recv_exceptions': 0, 'send_exceptions': 0}
+        # latest telemetry (ENU/FLU)
+        self._att = None          # ((roll, pitch, yaw), rates)
+        self._pos = None          # (position, velocity)
+        self._published_state: dict[str, object] = {}
+
+        self.pub_odom = self.create_publisher(Odometry, 'vehicle/odom', RELIABLE_QOS)
+        self.pub_vel = self.create_publisher(TwistStamped, 'vehicle/velocity', RELIABLE_QOS)
+        self.pub_imu = self.create_publisher(Imu, 'vehicle/imu', RELIABLE_QOS)
+        self.pub_range = self.create_publisher(Range, 'vehicle/range', RELIABLE_QOS)
+        self.pub_armed = self.create_publisher(Bool, 'vehicle/armed', LATCHED_QOS)
+        self.pub_mode = self.create_publisher(String, 'vehicle/mode', LATCHED_QOS)
+        self.pub_landed = self.create_publisher(Bool, 'vehicle/landed', LATCHED_QOS)
+        self.create_subscription(QuaternionStamped, 'control/attitude', self._on_attitude,
+                                 SENSOR_QOS)
+        self.create_subscription(WrenchStamped, 'control/thrust', self._on_thrust, SENSOR_QOS)
+        self.create_subscription(Bool, 'control/enabled', self._on_enabled, LATCHED_QOS)
+        if cfg['landing_target_output']:
+            self.create_subscription(Odometry, 'apron/odom', self._on_apron, SENSOR_QOS)
+        self.create_service(SetBool, 'bridge/arm', self._srv_arm)
+        self.create_service(Trigger, 'bridge/offboard', self._srv_offboard)
+        self.create_timer(0.02, self._on_timer)
+        self._running = True
+        self._reader = threading.Thread(target=self._read_loop, name='mavlink_reader',
+                                        daemon=True)
+        self._reader.start()
+
+    # --- helpers -------------------------------------------------------------------------
+
+    def _now(self) -> float:
+        return time.monotonic()
+
+    def _boot_ms(self) -> int:
+        return int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
+
+    def _stamp(self, header, frame_id: str) -> None:
+        header.stamp = self.get_clock().now().to_msg()
+        header.frame_id = frame_id
+
+    def _send(self, fn, *args, **kwargs) -> None:
+        try:
+            fn(*args, **kwargs)
+        except Exception:  # a serial write error must not kill a callback
+            self.errors['send_exceptions'] += 1
+
+    def _target(self) -> tuple[int, int]:
+        return self.core.target_system or 1, self.core.target_component
+
+    # --- MAVLink in ----------------------------------------------------------------------
+
+    def _read_loop(self) -> None:
+        while self._running:
+            try:
+                msg = self.conn.recv_match(blocking=True, timeout=0.05)
+            except Exception:
+                self.errors['recv_exceptions'] += 1
+                with self._lock:
+                    self.core.count_bad_data()
+                time.sleep(0.001)
+                continue
+            if msg is None:
+                continue
+            try:
+                self._handle(msg)
+            except Exception as exc:  # never let one odd message stop the reader
+                self.errors['recv_exceptions'] += 1
+                self.get_logger().warning(f'MAVLink {msg.get_type()} handling failed: {exc}',
+                                          throttle_duration_sec=5.0)
+
+    def _handle(self, msg) -> None:
+        kind = msg.get_type()
+        now = self._now()
+        if kind == 'BAD_DATA':
+            with self._lock:
+                self.core.count_bad_data()
+        elif kind == 'HEARTBEAT':
+            with self._lock:
+                ok = self.core.on_heartbeat(now, msg.get_srcSystem(), msg.get_srcComponent(),
+                                            msg.type, msg.autopilot, msg.base_mode,
+                                            msg.custom_mode)
+                armed, mode = self.core.armed, self.core.mode
+            if ok:
+                self._publish_latched('armed', self.pub_armed, Bool(data=armed))
+                self._publish_latched('mode', self.pub_mode, String(data=mode))
+        elif kind == 'COMMAND_ACK':
+            with self._lock:
+                self.core.on_command_ack(now, msg.command, msg.result)
+        elif kind == 'PARAM_VALUE':
+            with self._lock:
+                self.core.on_param_value(msg.param_id, msg.param_value)
+        elif kind == 'EXTENDED_SYS_STATE':
+            with self._lock:
+                self.core.on_extended_sys_state(msg.landed_state)
+                landed = self.core.landed
+            if landed is not None:
+                self._publish_latched('landed', self.pub_landed, Bool(data=landed))
+        elif kind == 'ATTITUDE':
+            vals = (msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+            if all(map(math.isfinite, vals)):
+                self._att = attitude_to_enu(*vals)
+        elif kind == 'LOCAL_POSITION_NED':
+            vals = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
+            if all(map(math.isfinite, vals)):
+                self._pos = local_position_ned_to_enu(*vals)
+                self._publish_odom()
+        elif kind == 'HIGHRES_IMU':
+            vals = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro)
+            if all(map(math.isfinite, vals)):
+                self._publish_imu(*imu_frd_to_flu(*vals))
+        elif kind == 'SCALED_IMU':
+            self._publish_imu(*scaled_imu_to_flu(msg.xacc, msg.yacc, msg.zacc, msg.xgyro,
+                                                 msg.ygyro, msg.zgyro))
+        elif kind == 'DISTANCE_SENSOR':
+            if msg.orientation != 25:
+                return  # not the downward LidarLite
+            r = distance_sensor_to_range_m(msg.current_distance, msg.min_distance,
+                                           msg.max_distance, msg.orientation)
+            out = Range()
+            self._stamp(out.header, self.cfg['lidar_frame'])
+            out.radiation_type = Range.INFRARED
+            out.field_of_view = float(self.cfg['range_field_of_view_rad'])
+            out.min_range = msg.min_distance * 0.01
+            out.max_range = msg.max_distance * 0.01
+            out.range = math.inf if r is None else r
+            self.pub_range.publish(out)
+
+    def _publish_latched(self, key: str, pub, msg) -> None:
+        if self._published_state.get(key) != msg.data:
+            self._published_state[key] = msg.data
+            pub.publish(msg)
+
+    def _publish_odom(self) -> None:
+        (x, y, z), (vx, vy, vz) = self._pos
+        euler, rates = self._att if self._att is not None else ((0.0, 0.0, 0.0), (0.0,) * 3)
+        w, qx, qy, qz = euler_to_quaternion(*euler)
+        od = Odometry()
+        self._stamp(od.header, self.cfg['map_frame'])
+        od.child_frame_id = self.cfg['base_frame']
+        od.pose.pose.position.x, od.pose.pose.position.y, od.pose.pose.position.z = x, y, z
+        q = od.pose.pose.orientation
+        q.w, q.x, q.y, q.z = w, qx, qy, qz
+        m = rot_body_to_world(*euler)  # twist in base_link (REP-105): v_body = Rᵀ v_world
+        tw = od.twist.twist
+        tw.linear.x = m[0][0] * vx + m[1][0] * vy + m[2][0] * vz
+        tw.linear.y = m[0][1] * vx + m[1][1] * vy + m[2][1] * vz
+        tw.linear.z = m[0][2] * vx + m[1][2] * vy + m[2][2] * vz
+        tw.angular.x, tw.angular.y, tw.angular.z = rates
+        self.pub_odom.publish(od)
+        ts = TwistStamped()
+        ts.header = od.header
+        ts.twist.linear.x, ts.twist.linear.y, ts.twist.linear.z = vx, vy, vz
+        self.pub_vel.publish(ts)
+
+    def _publish_imu(self, accel_flu, gyro_flu) -> None:
+        imu = Imu()
+        self._stamp(imu.header, self.cfg['base_frame'])
+        if self._att is not None:
+            w, qx, qy, qz = euler_to_quaternion(*self._att[0])
+            imu.orientation.w, imu.orientation.x = w, qx
+            imu.orientation.y, imu.orientation.z = qy, qz
+        else:
+            imu.orientation_covariance[0] = -1.0  # REP-145: orientation unknown
+        imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z = gyro_flu
+        acc = imu.linear_acceleration
+        acc.x, acc.y, acc.z = accel_flu
+        self.pub_imu.publish(imu)
+
+    # --- ROS in --------------------------------------------------------------------------
+
+    def _on_attitude(self, msg: QuaternionStamped) -> None:
+        q = msg.quaternion
+        with self._lock:
+            self.core.on_attitude_command(self._now(), stamp_to_s(msg.header.stamp),
+                                          (q.w, q.x, q.y, q.z))
+
+    def _on_thrust(self, msg: WrenchStamped) -> None:
+        with self._lock:
+            sp = self.core.on_thrust_command(self._now(), stamp_to_s(msg.header.stamp),
+                                             msg.wrench.force.z)
+            if sp is not None:
+                ts, tc = self._target()
+                self._send(self.conn.mav.set_attitude_target_send, self._boot_ms(), ts, tc,
+                           sp.type_mask, list(sp.q_ned_frd), 0.0, 0.0, 0.0, sp.thrust_norm)
+
+    def _on_enabled(self, msg: Bool) -> None:
+        with self._lock:
+            self.core.on_enabled(self._now(), bool(msg.data))
+
+    def _on_apron(self, msg: Odometry) -> None:
+        p = msg.pose.pose.position
+        if not all(map(math.isfinite, (p.x, p.y, p.z))):
+            return
+        if self.cfg['autopilot'] == 'px4':
+            fields = landing_target_px4(int(self._boot_ms() * 1000), (p.x, p.y, p.z))
+        else:
+            if self._pos is None or self._att is None:
+                return
+            (vx, vy, vz), euler = self._pos[0], self._att[0]
+            m = rot_body_to_world(*euler)
+            d = (p.x - vx, p.y - vy, p.z - vz)
+            rel = tuple(m[0][i] * d[0] + m[1][i] * d[1] + m[2][i] * d[2] for i in range(3))
+            fields = landing_target_ardupilot(int(self._boot_ms() * 1000), rel)
+        with self._lock:
+            self._send(self.conn.mav.landing_target_send, **fields)
+
+    def _srv_arm(self, request, response):
+        with self._lock:
+            response.success, response.message = self.core.request_arm(self._now(),
+                                                                        bool(request.data))
+        return response
+
+    def _srv_offboard(self, request, response):
+        with self._lock:
+            response.success, response.message = self.core.request_offboard(self._now())
+        return response
+
+    # --- periodic ------------------------------------------------------------------------
+
+    def _on_timer(self) -> None:
+        with self._lock:
+            out = self.core.step(self._now())
+            ts, tc = self._target()
+            for o in out:
+                if o.kind == 'heartbeat':
+                    self._send(self.conn.mav.heartbeat_send,
+                               mavutil.mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+                               mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+                               mavutil.mavlink.MAV_STATE_ACTIVE)
+                elif o.kind == 'command':
+                    self._send(self.conn.mav.command_long_send, ts, tc, o.command, 0,
+                               *o.params)
+                elif o.kind == 'param_request':
+                    self._send(self.conn.mav.param_request_read_send, ts, tc,
+                               o.param_id.encode('ascii'), -1)
+
+    def destroy_node(self) -> None:
+        self._running = False
+        if self._reader.is_alive() and self._reader is not threading.current_thread():
+            self._reader.join(timeout=1.0)
+        with contextlib.suppress(Exception):
+            self.conn.close()
+        return super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(MavlinkBridgeNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
