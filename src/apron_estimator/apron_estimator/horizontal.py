@@ -191,7 +191,7 @@ class AccelIntegrator:
 class HorizontalParams:
     """Horizontal filter and track management."""
 
-    accel_psd_m2ps3: float = 0.5      # q: relative velocity random walk, Q = diag(0, q dt) (31)
+    accel_psd_m2ps3: float = 0.2      # q: relative velocity random walk, Q = diag(0, q dt) (31)
     sigma0_m: float = 0.02            # measurement σ = sigma0_m + sigma_per_m · h
     sigma_per_m: float = 0.015        # m per m of height (≈ 0.9° of angular error)
     nis_gate: float = 13.8            # 2-D χ² gate on the NIS (13.8 ≈ 99.9 %)
