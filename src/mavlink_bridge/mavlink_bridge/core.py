@@ -451,8 +451,9 @@ class BridgeCore:
             self._offboard = None
             self.last_result = f'{p.offboard_mode} request timed out'
             return
-        if self.stream_age_s(t_s) < p.offboard_warmup_s:
-            return  # keep streaming first (PX4 rejects OFFBOARD without a warm stream)
+        if self.stream_age_s(t_s) < p.offboard_warmup_s or \
+                t_s - self._last_sent_s > p.input_timeout_s:
+            return  # stream first, and only ask while it is flowing right now
         if t_s - req.last_sent_s >= p.command_retry_s:
             req.last_sent_s = t_s
             p1, p2, p3 = do_set_mode_params(p.autopilot, p.offboard_mode)
