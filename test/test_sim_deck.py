@@ -3,9 +3,6 @@
 import math
 import random
 
-import numpy as np
-import pytest
-
 from deck_simulator.deck import (
     Deck,
     SeaStateHeave,
@@ -14,6 +11,8 @@ from deck_simulator.deck import (
     jonswap,
     pierson_moskowitz,
 )
+import numpy as np
+import pytest
 
 
 def fd_check(heave, times, h=1e-4, tol_v=1e-6, tol_a=1e-4):
@@ -113,7 +112,7 @@ def test_sea_state_seeded_and_seed_dependent():
 
 def test_deck_mean_height_and_drift():
     d = Deck((-3.2, -2.0), (1.05, 0.85), 0.6, SineHeave(0.2, 5.0, 0.0), (0.5, -0.25))
-    cx, cy, z, vz, az = d.state(2.0)
+    cx, cy, z, _, _ = d.state(2.0)
     assert (cx, cy) == pytest.approx((-2.2, -2.5))
     assert z == pytest.approx(0.6 + 0.2 * math.sin(2 * math.pi * 2.0 / 5.0))
     assert (d.half_x, d.half_y) == (0.525, 0.425)

@@ -4,9 +4,6 @@ import math
 import random
 import statistics
 
-from deckland_common.frames import rot_body_to_world
-import pytest
-
 from deck_simulator.sensors import (
     Camera,
     CameraParams,
@@ -17,6 +14,8 @@ from deck_simulator.sensors import (
     lidar_true_range,
     project_point,
 )
+from deckland_common.frames import rot_body_to_world
+import pytest
 
 EXACT = CameraParams(pixel_noise_px=0.0, dropout_prob=0.0)
 FX = 160.0 / math.tan(math.radians(30.0))

@@ -3,13 +3,13 @@
 import dataclasses
 import math
 
+from deck_simulator.vehicle import Vehicle, VehicleParams, mix, unmix
 from deckland_common.frames import rot_body_to_world
 import pytest
 
-from deck_simulator.vehicle import Vehicle, VehicleParams, mix, unmix
-
 DT = 1.0 / 400.0
-NO_DRAG = dict(drag_linear_n_per_mps=0.0, drag_quad_h_kg_per_m=0.0, drag_quad_v_kg_per_m=0.0)
+NO_DRAG = {'drag_linear_n_per_mps': 0.0, 'drag_quad_h_kg_per_m': 0.0,
+           'drag_quad_v_kg_per_m': 0.0}
 
 
 def gamma_by_hand(rho, r, zp):

@@ -175,8 +175,10 @@ class World:
         return abs(x - cx) <= d.half_x and abs(y - cy) <= d.half_y
 
     def _substep(self, h: float) -> None:
-        t = self.t_s
+        t = self.t_s + h
         deck = self.deck
+        # the deck at the end of the sub-step: contact and the resting constraint must agree
+        # with truth() at the new time (the half-step offset for z_p of (4) is immaterial)
         cx, cy, ztop, dvz, daz = deck.state(t)
         v = self.vehicle
         p = self.params
@@ -205,7 +207,7 @@ class World:
         thrust = v.f1 + v.f2 + v.f3 + v.f4
         if thrust > self.max_thrust_n:
             self.max_thrust_n = thrust
-        self.t_s = t = t + h
+        self.t_s = t
         resting = self.resting_on
         if resting is None:
             gear_z = v.z - p.gear_height_m
