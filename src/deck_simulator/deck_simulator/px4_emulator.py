@@ -280,6 +280,7 @@ class Px4Emulator:
         if self._t0_s is None:
             self._t0_s = t_s
         for data, addr in self.transport.receive():
+            self._reset_parser()  # a datagram is self-contained: a truncated one ends here
             try:
                 msgs = self.mav.parse_buffer(data) or []
             except Exception:  # pymavlink raises on some malformed input even when robust
@@ -342,6 +343,15 @@ class Px4Emulator:
         return VehicleCommand(kind, 0.0, 0.0, self._hold_yaw, thrust)
 
     # --- internals -----------------------------------------------------------------------
+
+    def _reset_parser(self) -> None:
+        m = self.mav
+        if m.buf_len() > 0:
+            self.rejected['bad_data'] += 1  # leftover of a truncated packet
+        m.buf = bytearray()
+        m.buf_index = 0
+        m.expected_length = mavlink.HEADER_LEN_V1 + 2
+        m.have_prefix_error = False
 
     def _time_boot_ms(self, t_s: float) -> int:
         return max(int((t_s - (self._t0_s or 0.0)) * 1000.0), 0) & 0xFFFFFFFF

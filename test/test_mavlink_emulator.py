@@ -1,0 +1,200 @@
+"""deck_simulator.px4_emulator over an in-memory link: PX4 offboard rules and failsafes."""
+
+import math
+import random
+
+from deck_simulator.px4_emulator import EmulatorParams, MemoryLink, Px4Emulator
+from mavlink_bridge.conversions import ThrustCalibration, set_attitude_target_fields
+from pymavlink.dialects.v20 import common as mavlink
+import pytest
+
+
+class Companion:
+    def __init__(self, params=None):
+        self.link = MemoryLink()
+        self.emu = Px4Emulator(params or EmulatorParams(), transport=self.link.a)
+        self.mav = mavlink.MAVLink(self.link.b, srcSystem=1, srcComponent=191)
+        self.rx = mavlink.MAVLink(None)
+
+    def received(self):
+        out = []
+        for data, _ in self.link.b.receive():
+            out += self.rx.parse_buffer(data) or []
+        return out
+
+    def setpoint(self, thrust_n=20.0, att=(0.1, 0.05, 1.0)):
+        self.mav.set_attitude_target_send(**set_attitude_target_fields(
+            *att, thrust_n, self.emu.params.thrust))
+
+    def command(self, cmd, *params):
+        p = list(params) + [0.0] * (7 - len(params))
+        self.mav.command_long_send(1, 1, cmd, 0, *p)
+
+    def state(self, t, landed=False, vz=0.0):
+        self.emu.publish_state(t, (1.0, 2.0, 3.0), (0.0, 0.0, vz), 0.0, 0.0, 0.3,
+                               (0.0, 0.0, 0.0), (0.0, 0.0, 9.81), 2.0, landed)
+
+
+def stream(c, t0, t1, hz=50.0, **kw):
+    t = t0
+    while t < t1:
+        c.setpoint(**kw)
+        c.emu.update(t)
+        t += 1.0 / hz
+    return t
+
+
+def test_telemetry_is_ned_frd_cm():
+    c = Companion()
+    c.emu.update(0.0)
+    c.emu.publish_state(0.0, (1.0, 2.0, 3.0), (0.5, -0.2, 0.1), 0.1, 0.2, 0.3,
+                        (0.01, 0.02, 0.03), (0.0, 0.0, 9.81), 2.345, False)
+    msgs = {m.get_type(): m for m in c.received()}
+    assert msgs['HEARTBEAT'].autopilot == mavlink.MAV_AUTOPILOT_PX4
+    assert (msgs['HEARTBEAT'].custom_mode >> 16) & 0xFF == 3                # POSCTL
+    lp = msgs['LOCAL_POSITION_NED']
+    assert (lp.x, lp.y, lp.z) == pytest.approx((2.0, 1.0, -3.0))
+    assert (lp.vx, lp.vy, lp.vz) == pytest.approx((-0.2, 0.5, -0.1))
+    at = msgs['ATTITUDE']
+    assert (at.roll, at.pitch, at.yaw) == pytest.approx((0.1, -0.2, math.pi / 2 - 0.3))
+    assert (at.rollspeed, at.pitchspeed, at.yawspeed) == pytest.approx((0.01, -0.02, -0.03))
+    ds = msgs['DISTANCE_SENSOR']
+    assert (ds.current_distance, ds.orientation) == (234, 25) or ds.current_distance == 235
+    assert msgs['HIGHRES_IMU'].zacc == pytest.approx(-9.81)                 # FRD specific force
+    assert msgs['EXTENDED_SYS_STATE'].landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+
+
+def test_set_message_interval_changes_rate():
+    c = Companion()
+    c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 30, 10000)    # ATTITUDE at 100 Hz
+    c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 132, -1)      # DISTANCE_SENSOR off
+    c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 9999, 1000)   # unknown id
+    c.emu.update(0.0)
+    acks = [(m.command, m.result) for m in c.received() if m.get_type() == 'COMMAND_ACK']
+    assert acks == [(511, 0), (511, 0), (511, mavlink.MAV_RESULT_UNSUPPORTED)]
+    counts = {}
+    for i in range(400):                                          # 1 s at 400 Hz
+        c.state(i / 400.0)
+        for m in c.received():
+            counts[m.get_type()] = counts.get(m.get_type(), 0) + 1
+    assert 99 <= counts['ATTITUDE'] <= 101
+    assert 'DISTANCE_SENSOR' not in counts
+    assert 29 <= counts['LOCAL_POSITION_NED'] <= 31
+
+
+def test_offboard_needs_a_second_of_setpoints():
+    c = Companion()
+    c.state(0.0, landed=True)
+    c.command(400, 1.0)                                           # arm
+    t = stream(c, 0.0, 0.6)
+    c.command(176, 1.0, 6.0)                                      # OFFBOARD too early
+    c.emu.update(t)
+    assert c.emu.acks[-1] == (176, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+    assert c.emu.mode == 'POSCTL'
+    t = stream(c, t, 1.3)
+    c.command(176, 1.0, 6.0)
+    c.emu.update(t)
+    assert c.emu.acks[-1] == (176, mavlink.MAV_RESULT_ACCEPTED)
+    assert c.emu.mode == 'OFFBOARD' and c.emu.armed
+    cmd = c.emu.command()
+    assert cmd.kind == 'offboard'
+    assert (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad) == pytest.approx((0.1, 0.05, 1.0),
+                                                                       abs=1e-6)
+    assert cmd.thrust_n == pytest.approx(20.0, abs=1e-4)
+
+
+def test_slow_stream_never_warms_up():
+    c = Companion()
+    t = stream(c, 0.0, 3.0, hz=1.5)                               # < 2 Hz
+    c.command(176, 1.0, 6.0)
+    c.emu.update(t)
+    assert c.emu.mode == 'POSCTL'
+
+
+def test_offboard_loss_failsafe_lands_after_com_of_loss_t():
+    c = Companion()
+    c.state(0.0, landed=True)
+    c.command(400, 1.0)
+    t = stream(c, 0.0, 1.3)
+    c.command(176, 1.0, 6.0)
+    c.emu.update(t)
+    c.state(t, landed=False)
+    last = t
+    t += 0.5
+    c.emu.update(t)                                               # 0.5 s silence: hold last
+    assert c.emu.mode == 'OFFBOARD' and c.emu.command().kind == 'offboard'
+    t = last + 1.05
+    c.emu.update(t)
+    assert c.emu.mode == 'AUTO.LAND' and c.emu.failsafe_active
+    c.state(t, vz=0.0)
+    cmd = c.emu.command()
+    assert cmd.kind == 'failsafe_land' and cmd.roll_rad == 0.0 and cmd.pitch_rad == 0.0
+    weight = 2.71 * 9.81
+    assert cmd.thrust_n < weight                                  # descending from rest
+    c.state(t, vz=-0.7)
+    assert c.emu.command().thrust_n == pytest.approx(weight)      # at land speed: hover thrust
+    # setpoints coming back do not re-enter OFFBOARD by themselves
+    t = stream(c, t, t + 2.0)
+    assert c.emu.mode == 'AUTO.LAND'
+
+
+def test_disarm_rules():
+    c = Companion(EmulatorParams(disarm_preflight_s=0.0))
+    c.state(0.0, landed=False)
+    c.command(400, 1.0)
+    c.emu.update(0.0)
+    c.command(400, 0.0)                                           # in the air: denied
+    c.emu.update(0.1)
+    assert c.emu.armed and c.emu.acks[-1] == (400, mavlink.MAV_RESULT_DENIED)
+    c.command(400, 0.0, 21196.0)                                  # forced
+    c.emu.update(0.2)
+    assert not c.emu.armed and c.emu.command().kind == 'idle'
+    # auto-disarm 2 s after touchdown (COM_DISARM_LAND)
+    c.command(400, 1.0)
+    c.emu.update(0.3)
+    c.state(0.3, landed=False)
+    c.emu.update(0.4)
+    c.state(0.5, landed=True)
+    c.emu.update(0.5)
+    c.emu.update(2.4)
+    assert c.emu.armed
+    c.emu.update(2.6)
+    assert not c.emu.armed
+
+
+def test_garbage_and_bad_setpoints_are_counted_not_raised():
+    c = Companion()
+    rng = random.Random(7)
+    for _ in range(50):
+        c.link.b.send(bytes(rng.randrange(256) for _ in range(rng.randrange(1, 300))))
+    c.link.b.send(b'\xfd\x09\x00\x00')                            # truncated v2 header
+    bad = dict(set_attitude_target_fields(0.0, 0.0, 0.0, 20.0, ThrustCalibration()))
+    bad['thrust'] = math.nan
+    c.mav.set_attitude_target_send(**bad)
+    c.emu.update(0.0)
+    assert c.emu.rejected['bad_data'] > 0
+    assert c.emu.rejected['nan'] == 1 and c.emu.setpoint is None
+    c.setpoint()
+    c.emu.update(0.1)
+    assert c.emu.setpoint is not None
+    c.emu.publish_state(0.2, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0), 0, 0, 0, (0, 0, 0),
+                        (0, 0, 9.81), None, False)
+    assert c.emu.rejected['nan'] == 2
+
+
+def test_emulator_cost():
+    import timeit
+    c = Companion()
+    t = [0.0]
+
+    def one():
+        t[0] += 0.0025
+        c.emu.update(t[0])
+        c.state(t[0])
+        c.emu.command()
+        c.link.b.inbox.clear()
+
+    n = 2000
+    us = timeit.timeit(one, number=n) / n * 1e6
+    print(f'px4 emulator: {us:.1f} us per 400 Hz step (update + publish_state + command)')
+    assert us < 2000.0
