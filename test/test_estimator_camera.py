@@ -3,10 +3,9 @@
 import math
 import random
 
+from apron_estimator.camera import CameraModel, CameraParams
 from deckland_common.frames import mat_t_vec, rot_body_to_world, world_to_body_xy
 import pytest
-
-from apron_estimator.camera import CameraModel, CameraParams
 
 FX = 160.0 / math.tan(math.radians(30.0))   # (W/2) / tan(fov_x / 2)
 FY = 100.0 / math.tan(math.radians(23.5))
@@ -37,7 +36,7 @@ def test_focal_length_uses_half_of_the_full_fov():
     assert p.fy_px == pytest.approx(FY)
     # the image edge is at half the full FOV
     cam = CameraModel(p)
-    dx, dy = cam.relative_position(319.9999, 100.0, 1.0, 0.0, 0.0, 0.0)
+    _dx, dy = cam.relative_position(319.9999, 100.0, 1.0, 0.0, 0.0, 0.0)
     assert math.degrees(math.atan2(-dy, 1.0)) == pytest.approx(30.0, abs=1e-3)
 
 

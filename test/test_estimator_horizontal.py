@@ -3,12 +3,15 @@
 import math
 import random
 
+from apron_estimator.horizontal import (
+    AccelIntegrator,
+    AxisPairKF,
+    HorizontalParams,
+    HorizontalTracker,
+)
 from filterpy.kalman import KalmanFilter
 import numpy as np
 import pytest
-
-from apron_estimator.horizontal import (AccelIntegrator, AxisPairKF, HorizontalParams,
-                                        HorizontalTracker)
 
 
 def test_closed_form_equals_filterpy_every_step():

@@ -21,7 +21,8 @@ vertical speed v = v_v.
 Surface jumps (the deck edge passing under the lidar) are *re-based*, never filtered: a lidar
 innovation beyond max(jump_threshold_m, jump_sigma·√S) is held back; ``jump_confirm`` such
 samples in a row of the same sign and within ``jump_consistency_m`` of each other re-base
-z_s := z_v − h (v_s, a_s := 0, their covariance re-inflated), increment ``surface_epoch``.
+z_s := z_v − h averaged over the run (v_s, a_s := 0, their covariance re-inflated),
+increment ``surface_epoch``.
 A shorter run is a spike and is discarded (counted in ``rejected['outlier']``).
 """
 
@@ -52,7 +53,7 @@ class VerticalParams:
     jump_confirm: int = 3                  # consecutive consistent samples to re-base
     jump_consistency_m: float = 0.15
     jump_window_s: float = 0.3             # a pending run older than this starts over
-    rebase_vs_sigma_mps: float = 1.0       # σ of v_s after a re-base
+    rebase_vs_sigma_mps: float = 0.5       # σ of v_s after a re-base
     altitude_gate: float = 25.0            # NIS gate of the altitude / vz updates
     lidar_timeout_s: float = 0.5
     range_min_m: float = 0.05
@@ -281,8 +282,9 @@ class VerticalFilter:
             pend.clear()
         pend.append((t_s, nu))
         if len(pend) >= p.jump_confirm:
+            jump = -sum(n for _, n in pend) / len(pend)
             pend.clear()
-            self._rebase(h)
+            self._rebase(jump, h)
             self.t_lidar_ok = t_s
 
     # -- initialisation and re-basing ------------------------------------------------------
@@ -319,12 +321,13 @@ class VerticalFilter:
         P[3][3] = p.rebase_vs_sigma_mps ** 2
         P[4][4] = p.surface_accel_sigma_mps2 ** 2 if self._accel_state else 0.0
 
-    def _rebase(self, h: float) -> None:
+    def _rebase(self, jump_m: float, h: float) -> None:
+        """z_s += jump (the mean of the run's −innovations, i.e. z_v − h averaged over the
+        confirming samples); v_s = a_s = 0 with their prior covariance."""
         x = self.x
-        new_zs = x[0] - h
-        self.last_rebase_m = new_zs - x[2]
+        self.last_rebase_m = jump_m
         self.surface_epoch += 1
-        x[2], x[3], x[4] = new_zs, 0.0, 0.0
+        x[2], x[3], x[4] = x[2] + jump_m, 0.0, 0.0
         self._rebase_covariance(h)
 
     # -- output ----------------------------------------------------------------------------
