@@ -1,0 +1,253 @@
+"""ApronEstimator end to end on an independent kinematic simulation; ApronState array layout."""
+
+from dataclasses import astuple, replace
+import math
+import random
+
+from apron_estimator.camera import CameraParams
+from apron_estimator.estimator import ApronEstimator, EstimatorParams
+from apron_estimator.types import (
+    APRON_STATE_V1_FIELDS,
+    APRON_STATE_V1_LEN,
+    ApronState,
+    PixyBlock,
+    VerticalState,
+)
+from deckland_common.frames import mat_t_vec, rot_body_to_world, world_to_body_xy
+import pytest
+
+FX = 160.0 / math.tan(math.radians(30.0))
+FY = 100.0 / math.tan(math.radians(23.5))
+
+
+def project(rel_world, roll, pitch, yaw):
+    """Independent forward model (default mount): world offset → pixel, None if outside."""
+    b = mat_t_vec(rot_body_to_world(roll, pitch, yaw), rel_world)
+    ox, oy, oz = -b[1], -b[0], -b[2]
+    if oz <= 0.0:
+        return None
+    px, py = 160.0 + FX * ox / oz, 100.0 + FY * oy / oz
+    return (px, py) if 0.0 <= px <= 319.0 and 0.0 <= py <= 199.0 else None
+
+
+class Truth:
+    """Vehicle weaving over a drifting, heaving deck with the beacon at the deck centre."""
+
+    @staticmethod
+    def beacon(t):
+        return 3.0 + 0.2 * t, -1.0 + 0.1 * t, 0.6 + 0.2 * math.sin(2 * math.pi * t / 6.0)
+
+    @staticmethod
+    def beacon_vel(t):
+        return 0.2, 0.1
+
+    @staticmethod
+    def vehicle(t):
+        pos = (3.0 + 0.2 * t + 0.4 * math.sin(0.8 * t), -1.0 + 0.1 * t + 0.3 * math.cos(0.6 * t),
+               2.4)
+        vel = (0.2 + 0.32 * math.cos(0.8 * t), 0.1 - 0.18 * math.sin(0.6 * t), 0.0)
+        acc = (-0.256 * math.sin(0.8 * t), -0.108 * math.cos(0.6 * t), 0.0)
+        return pos, vel, acc
+
+    @staticmethod
+    def attitude(t):
+        return 0.1 * math.sin(1.3 * t), 0.12 * math.sin(0.9 * t + 0.4), math.pi - 0.3 + 0.2 * t
+
+
+def simulate(params, duration_s=12.0, seed=0, latency_s=0.03, spurious=False):
+    """Feed the estimator like the runner would; return it and per-frame errors after 4 s."""
+    rng = random.Random(seed)
+    blob_rng = random.Random(seed + 1000)   # separate, so the sensor noise is identical
+    est = ApronEstimator(params)
+    dt = 0.005
+    pending = []   # (deliver_at, stamp, blocks)
+    errs = []
+    for k in range(int(duration_s / dt) + 1):
+        t = k * dt
+        roll, pitch, yaw = Truth.attitude(t)
+        pos, vel, acc = Truth.vehicle(t)
+        est.on_attitude(t, roll, pitch, yaw)
+        est.on_accel(t, (acc[0] + rng.gauss(0, 0.05), acc[1] + rng.gauss(0, 0.05),
+                         rng.gauss(0, 0.05)))
+        bx, by, bz = Truth.beacon(t)
+        if k % 2 == 0:
+            est.on_lidar(t, (pos[2] - bz) / (math.cos(roll) * math.cos(pitch))
+                         + rng.gauss(0, 0.01))
+        if k % 10 == 0:
+            est.on_local_position(t, (pos[0] + rng.gauss(0, 0.01), pos[1] + rng.gauss(0, 0.01),
+                                      pos[2] + rng.gauss(0, 0.1)), vel)
+        if k % 4 == 0:
+            pix = project((bx - pos[0], by - pos[1], bz - pos[2]), roll, pitch, yaw)
+            blocks = [] if pix is None else [PixyBlock(1, round(pix[0]), round(pix[1]), 6, 6)]
+            if spurious and k % 40 == 0:
+                blocks.insert(0, PixyBlock(1, blob_rng.uniform(0, 319),
+                                           blob_rng.uniform(0, 199), 9, 9))
+            pending.append((t + latency_s, t, blocks))
+        while pending and pending[0][0] <= t + 1e-12:
+            _, stamp, blocks = pending.pop(0)
+            est.on_camera(stamp, blocks)
+        if k % 4 == 0 and t > 4.0:
+            s = est.state(t)
+            errs.append((s, t))
+    return est, errs
+
+
+def test_end_to_end_tracks_a_moving_heaving_deck():
+    est, samples = simulate(EstimatorParams())
+    worst_pos = worst_vel = worst_h = 0.0
+    for s, t in samples:
+        assert s.tracked and s.visible
+        bx, by, bz = Truth.beacon(t)
+        pos, _, _ = Truth.vehicle(t)
+        worst_pos = max(worst_pos, math.hypot(s.apron_position_m[0] - bx,
+                                              s.apron_position_m[1] - by))
+        worst_vel = max(worst_vel, math.hypot(s.apron_velocity_mps[0] - 0.2,
+                                              s.apron_velocity_mps[1] - 0.1))
+        worst_h = max(worst_h, abs(s.vertical.height_m - (pos[2] - bz)))
+        # Figure 8: the heading-frame offset is the ENU offset rotated by −ψ
+        yaw = Truth.attitude(t)[2]
+        truth_body = world_to_body_xy(bx - pos[0], by - pos[1], yaw)
+        assert s.rel_position_body_m == pytest.approx(truth_body, abs=0.08)
+        assert s.rel_position_body_m == pytest.approx(
+            world_to_body_xy(*s.rel_position_m, yaw), abs=0.01)
+        assert s.camera_stamp_s <= t - 0.03 + 1e-9
+    assert worst_pos < 0.06
+    assert worst_vel < 0.1
+    assert worst_h < 0.08
+    assert est.rejected['horizontal.gated'] == 0
+
+
+def test_tilt_compensation_beats_paper_exact_in_closed_loop_data():
+    rms = {}
+    for exact in (False, True):
+        params = EstimatorParams(camera=CameraParams(paper_exact=exact))
+        _, samples = simulate(params, duration_s=10.0, seed=1)
+        e2 = []
+        for s, t in samples:
+            bx, by, _ = Truth.beacon(t)
+            e2.append((s.apron_position_m[0] - bx) ** 2 + (s.apron_position_m[1] - by) ** 2)
+        rms[exact] = math.sqrt(sum(e2) / len(e2))
+    # ≈ 0.1 rad of attitude at ~1.9 m: the paper's (29)-(30) are off by ~0.2 m
+    assert rms[False] < 0.03
+    assert rms[True] > 4 * rms[False]
+
+
+def test_spurious_blobs_do_not_drag_the_estimate():
+    _, clean = simulate(EstimatorParams(), duration_s=8.0, seed=2)
+    est, noisy = simulate(EstimatorParams(), duration_s=8.0, seed=2, spurious=True)
+    assert est.rejected['horizontal.gated'] > 10
+    diff = max(math.hypot(a.apron_position_m[0] - b.apron_position_m[0],
+                          a.apron_position_m[1] - b.apron_position_m[1])
+               for (a, _), (b, _) in zip(clean, noisy, strict=True))
+    assert diff < 0.002
+
+
+def test_needs_attitude_and_height_before_using_a_frame():
+    est = ApronEstimator()
+    est.on_camera(0.0, [PixyBlock(1, 160, 100, 5, 5)])
+    assert est.rejected['no_attitude'] == 1
+    est.on_attitude(0.01, 0.0, 0.0, 0.0)
+    est.on_camera(0.02, [PixyBlock(1, 160, 100, 5, 5)])
+    assert est.rejected['no_height'] == 1
+    est.on_lidar(0.03, 2.0)
+    est.on_camera(0.04, [PixyBlock(1, 200, 100, 5, 5)])
+    s = est.state(0.04)
+    assert s.visible and not s.tracked
+    assert s.rel_position_m == pytest.approx((0.0, -2.0 * 40.0 / FX))
+
+
+def test_signature_filter():
+    est = ApronEstimator(EstimatorParams(beacon_signature=2))
+    est.on_attitude(0.0, 0.0, 0.0, 0.0)
+    est.on_lidar(0.0, 2.0)
+    est.on_camera(0.01, [PixyBlock(1, 100, 100, 5, 5), PixyBlock(2, 160, 100, 5, 5)])
+    assert est.rejected['signature'] == 1
+    assert est.state(0.01).rel_position_m == pytest.approx((0.0, 0.0))
+
+
+def test_attitude_lookup_interpolates_across_the_yaw_wrap():
+    est = ApronEstimator()
+    est.on_attitude(0.00, 0.0, 0.1, math.pi - 0.05)
+    est.on_attitude(0.01, 0.1, 0.2, -math.pi + 0.05)
+    roll, pitch, yaw = est.attitude_at(0.005)
+    assert (roll, pitch) == pytest.approx((0.05, 0.15))
+    assert abs(abs(yaw) - math.pi) < 1e-9
+    assert est.attitude_at(0.5) is None          # beyond max_attitude_gap_s
+    est.on_attitude(0.005, 0.0, 0.0, 0.0)        # out of order
+    assert est.rejected['out_of_order'] == 1
+
+
+def test_garbage_never_raises_and_never_reaches_the_output():
+    est, _ = simulate(EstimatorParams(), duration_s=3.0, seed=4)
+    nan, inf = float('nan'), float('inf')
+    t = 3.0
+    est.on_attitude(nan, 0.0, 0.0, 0.0)
+    est.on_attitude(t + 0.001, nan, 0.0, 0.0)
+    est.on_accel(t + 0.001, (nan, 0.0, 0.0))
+    est.on_accel(t + 0.002, (0.0,))
+    est.on_accel(inf, (0.0, 0.0, 0.0))
+    est.on_lidar(t + 0.001, nan)
+    est.on_lidar(nan, 2.0)
+    est.on_lidar(t + 0.002, None)
+    est.on_local_position(t + 0.001, (nan, 0.0, 0.0), (0.0, 0.0, 0.0))
+    est.on_local_position(t + 0.002, (0.0, 0.0), (0.0, 0.0, 0.0))
+    est.on_camera(nan, [])
+    est.on_camera(t - 1.0, [PixyBlock(1, 160, 100, 5, 5)])
+    est.on_camera(t + 0.001, [PixyBlock(1, nan, 100, 5, 5), PixyBlock(1, 160, inf, 5, 5)])
+    for s in (est.state(t + 0.01), est.state(t + 5.0), est.state(nan)):
+        assert not any(math.isnan(v) for v in s.to_array())
+    assert est.rejected['nan'] >= 8
+
+
+def test_lost_then_reacquired():
+    est, _ = simulate(EstimatorParams(), duration_s=3.0, seed=5)
+    assert est.state(3.0).tracked
+    t = 3.0
+    for k in range(1, 200):   # frames without the beacon, sensors alive
+        tk = t + 0.01 * k
+        est.on_attitude(tk, 0.0, 0.0, 0.0)
+        est.on_lidar(tk, 2.0)
+        if k % 2 == 0:
+            est.on_camera(tk, [])
+    s = est.state(t + 2.0)
+    assert not s.tracked and not s.visible and s.time_since_seen_s > 1.0
+    for k in range(3):
+        est.on_camera(t + 2.0 + 0.02 * k, [PixyBlock(1, 160, 100, 5, 5)])
+        est.on_attitude(t + 2.01 + 0.02 * k, 0.0, 0.0, 0.0)
+        est.on_lidar(t + 2.01 + 0.02 * k, 2.0)
+    s = est.state(t + 2.05)
+    assert s.tracked and s.rel_position_m == pytest.approx((0.0, 0.0), abs=0.02)
+
+
+def test_apron_state_array_round_trip():
+    v = VerticalState(True, 1.2, -0.3, 2.0, -0.1, 0.8, 0.2, -0.05, 3, 0.55)
+    s = ApronState(12.5, True, False, 0.06, (1.0, -2.0), (0.1, 0.2), (0.01, 0.02),
+                   (0.5, 0.6), (0.7, 0.8), (10.0, 20.0), (0.3, 0.4), v, camera_stamp_s=12.44)
+    a = s.to_array()
+    assert len(a) == APRON_STATE_V1_LEN == len(APRON_STATE_V1_FIELDS) == 29
+    assert all(isinstance(x, float) for x in a)
+    assert ApronState.from_array(a) == s
+    assert a[APRON_STATE_V1_FIELDS.index('camera_stamp_s')] == 12.44
+    assert a[APRON_STATE_V1_FIELDS.index('surface_epoch')] == 3.0
+    u = ApronState.untracked(1.0)
+    assert ApronState.from_array(u.to_array()) == u
+    assert math.isinf(u.to_array()[1]) and math.isinf(u.to_array()[4])
+    assert ApronState.from_array(replace(s, tracked=False).to_array()).tracked is False
+    with pytest.raises(ValueError, match='29'):
+        ApronState.from_array(a[:-1])
+    with pytest.raises(ValueError, match='NaN'):
+        ApronState.from_array([float('nan')] * 29)
+    assert len(astuple(s)) == 13
+
+
+def test_state_from_estimator_round_trips():
+    _, samples = simulate(EstimatorParams(), duration_s=5.0, seed=6)
+    s = samples[-1][0]
+    assert ApronState.from_array(s.to_array()) == s
+
+
+def test_bad_params():
+    with pytest.raises(ValueError, match='beacon_signature'):
+        EstimatorParams(beacon_signature=-1)
+    with pytest.raises(ValueError, match='camera'):
+        EstimatorParams(camera=None)
