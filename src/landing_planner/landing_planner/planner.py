@@ -347,7 +347,8 @@ class LandingPlanner:
             self._epoch = v.surface_epoch
             if self._zref_ok and self._vframe == VERTICAL_RELATIVE and _finite(v.last_rebase_m):
                 self._zref.shift(-v.last_rebase_m)
-                if self._l.hold_height_m is not None and self.mode is Mode.IDLE:
+                if self._l.hold_height_m is not None and self.mode in (Mode.IDLE, Mode.ALIGN):
+                    # latched "hold where you are" heights move with the datum too
                     self._l.hold_height_m -= v.last_rebase_m
             self.rebases += 1
         self._height = v.height_m

@@ -7,12 +7,15 @@ keeps z_d and ż_d continuous (|z̈_d| ≤ max_accel) and z̈_d continuous too (
 max_jerk), and it never passes its target.
 
 Method (pure, plain floats): every step picks a jerk j. The preferred jerk j_v drives the
-speed toward ``max_speed`` with a square-root law (acceleration reaches zero exactly when the
-speed does). It is accepted only if, from the state one step later, a maximum-jerk braking
-manoeuvre (ramp to −A, hold, ramp back to 0) still comes to rest before the target; otherwise
-the largest of {j_v/2, j_v/5, j_v/20, 0, −J} that is still safe is used (−J when none
-is; the fractions let it creep onto the target instead of stalling a hair short). Near the
-target the state is snapped onto it once the residual is below 1e-6 m and 1e-4 m/s.
+speed toward ``max_speed``: the next acceleration is chosen so that releasing it at full jerk
+lands the speed exactly on the limit (a discrete square-root law, no speed overshoot). j_v is
+accepted only if, from the state one step later, a maximum-jerk braking manoeuvre (ramp to
+−A, hold, ramp back to 0, see :func:`stopping_displacement`) still comes to rest before the
+target; otherwise the largest of {j_v/2, j_v/5, j_v/20, 0, −J} that is still safe is used
+(−J when none is; the fractions let it creep onto the target instead of stalling a hair
+short). Near the target the state is snapped onto it once the residual is below 1e-6 m and
+1e-4 m/s. Verified for dt ≤ 0.01 s (the planner runs at 100 Hz); at 20 Hz the braking check
+is coarse and the target may be passed by ~1 mm.
 """
 
 from __future__ import annotations
@@ -52,18 +55,18 @@ def stopping_displacement(v: float, a: float, accel: float, jerk: float) -> floa
 
     Braking profile for v ≥ 0: acceleration ramps from ``a`` down to −a_p at −J, holds −a_p,
     then ramps back to 0 at +J, with a_p = min(A, √(J v + a²/2)) (triangular when the peak
-    stays below A). If the vehicle already decelerates so hard that releasing the
-    acceleration stops it (a ≤ 0 and a²/2J ≥ v), the distance to the zero-speed instant is
-    used. For v < 0 the result is mirrored.
+    stays below A). If the vehicle already decelerates so hard that merely releasing the
+    acceleration (+J until a = 0) reverses it (a ≤ 0 and a²/2J ≥ v), the release is followed
+    by the braking of the reversed motion. For v < 0 the result is mirrored.
     """
-    if v < 0.0:
+    if v < 0.0 or (v == 0.0 and a < 0.0):
         return -stopping_displacement(-v, -a, accel, jerk)
     J = jerk
     if a <= 0.0 and a * a >= 2.0 * J * v:
-        # release: v + a t + J t²/2 = 0, smallest non-negative root
-        disc = a * a - 2.0 * J * v
-        t = (-a - math.sqrt(max(disc, 0.0))) / J
-        return _advance(v, a, J, max(t, 0.0))[0]
+        x_rel, v_rel, _ = _advance(v, a, J, -a / J)     # v_rel = v − a²/2J ≤ 0, a → 0
+        if v_rel >= 0.0:
+            return x_rel
+        return x_rel - stopping_displacement(-v_rel, 0.0, accel, jerk)
     a = min(a, accel)
     a_p = math.sqrt(J * v + 0.5 * a * a)
     if a_p > accel:
@@ -143,14 +146,21 @@ class ReferenceGenerator:
         if d <= _SNAP_POS_M and abs(v) <= _SNAP_VEL_MPS and abs(a) <= J * dt_s:
             self._z, self._v, self._a = target_m, 0.0, 0.0
             return self._z, self._v, self._a
-        # preferred jerk: square-root speed law toward max_speed (a = 0 when v = v_max)
-        dv = max_speed_mps - v
-        a_des = math.copysign(min(math.sqrt(2.0 * J * abs(dv)), A), dv)
-        j_v = max(-J, min(J, (a_des - a) / dt_s))
+        # preferred jerk j_v: the acceleration a1 after this step is chosen so that releasing
+        # it at maximum jerk lands the speed exactly on v_max:
+        #   v1 + a1|a1| / 2J = v_max,  v1 = v + (a + a1) dt / 2
+        c = v + 0.5 * a * dt_s - max_speed_mps
+        h = 0.5 * dt_s
+        if c <= 0.0:    # speed up (a1 ≥ 0)
+            a1 = J * (-h + math.sqrt(h * h - 2.0 * c / J))
+        else:           # slow down (a1 < 0)
+            a1 = J * (h - math.sqrt(h * h + 2.0 * c / J))
+        a1 = max(-A, min(A, a1))
+        j_v = max(-J, min(J, (a1 - a) / dt_s))
         best = None
-        for j in (j_v, 0.5 * j_v, 0.2 * j_v, 0.05 * j_v, 0.0, -J):
-            if j > j_v or (j != 0.0 and j != -J and j_v <= 0.0):
-                continue
+        cands = ((j_v, 0.5 * j_v, 0.2 * j_v, 0.05 * j_v, 0.0, -J) if j_v > 0.0
+                 else (j_v, -J))
+        for j in cands:
             a1 = max(-A, min(A, a + j * dt_s))
             jj = (a1 - a) / dt_s
             x1, v1, _ = _advance(v, a, jj, dt_s)
