@@ -14,7 +14,8 @@ surface's own vertical acceleration a_s. With e_z = z − z_d (7):
     μ̇   = −Γ μ − Γ [−g − z̈_d + (γ̄/m) cφ cθ u_z + ζ + Γ σ]                            (19)
     u_z = m / (γ̄ cφ cθ) · [−K ė_z − K Λ e_z (e_z² + 1)^(−1/2) − ζ + g + z̈_d − d̂]    (16)
 
-so that σ̇ = −K σ + d̃ (20) and d̂̇ = ḋ − Γ d̃, i.e. d̃̇ = ḋ − Γ d̃ (22), d̃ = d − d̂.
+so that σ̇ = −K σ + d̃ (20) and d̂̇ = Γ d̃, i.e. d̃̇ = ḋ − Γ d̃ (22), d̃ = d − d̂ (the paper
+prints d̂̇ on the left of (22); it is d̃̇).
 
 Paper typos handled here (see README): (16) is obtained by substituting (15) — not (16) — into
 (13), and the γ̃ printed in (16), (19), (20), (21) is the nominal γ̄ of (5)-(6).
