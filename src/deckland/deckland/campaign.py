@@ -1,0 +1,272 @@
+"""``deckland campaign`` and ``deckland sim``: many seeded landings, one report.
+
+The campaign JSON is a stable interface (other tools read it)::
+
+    {"scenario", "controller", "runs", "seed", "success_rate", "fallback_rate", "crash_rate",
+     "horizontal_error_m": {"p50", "p95", "max"}, "touchdown_speed_mps": {"p50", "p95", "max"},
+     "time_to_land_s": {"p50", "p95"}, "wall_time_s", "realtime_factor",
+     "failures": [{"seed", "reason"}]}
+
+Run ``i`` of a campaign with seed ``S`` flies seed ``S * 100000 + i``; any failure listed in the
+report is reproduced alone with ``deckland sim --scenario NAME --seed <that seed>``.
+Touchdown statistics are taken over the runs that touched down on the pad.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing as mp
+import os
+import pathlib
+import sys
+import time
+from typing import Any
+
+from deckland.runner import CONTROLLERS, RunConfig, RunResult, run_landing
+
+SEED_STRIDE = 100_000
+
+
+def run_seed(campaign_seed: int, index: int) -> int:
+    """The seed of run ``index`` in a campaign seeded ``campaign_seed``."""
+    return campaign_seed * SEED_STRIDE + index
+
+
+def _percentile(values: list[float], q: float) -> float:
+    """Linear-interpolated percentile (numpy's default method), NaN for no data."""
+    if not values:
+        return math.nan
+    xs = sorted(values)
+    pos = (len(xs) - 1) * q / 100.0
+    lo = math.floor(pos)
+    hi = min(lo + 1, len(xs) - 1)
+    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
+
+
+def summarize(results: list[RunResult], scenario: str, controller: str, seed: int,
+              wall_time_s: float) -> dict[str, Any]:
+    """Aggregate run outcomes into the campaign report (see module docstring)."""
+    n = len(results)
+    on_pad = [r for r in results if r.landed_on_deck]
+    errors = [r.horizontal_error_m for r in on_pad]
+    speeds = [r.touchdown_speed_mps for r in on_pad]
+    times = [r.time_to_land_s for r in results if r.contact_kind != 'none']
+    sim_time = sum(r.sim_time_s for r in results)
+
+    def stats(xs, keys=('p50', 'p95', 'max')):
+        out = {}
+        for key in keys:
+            value = max(xs) if (key == 'max' and xs) else (
+                math.nan if key == 'max' else _percentile(xs, float(key[1:])))
+            out[key] = _json_float(value)
+        return out
+
+    return {
+        'scenario': scenario,
+        'controller': controller,
+        'runs': n,
+        'seed': seed,
+        'success_rate': sum(r.success for r in results) / n if n else 0.0,
+        'fallback_rate': sum(r.fallback for r in results) / n if n else 0.0,
+        'crash_rate': sum(r.crash for r in results) / n if n else 0.0,
+        'horizontal_error_m': stats(errors),
+        'touchdown_speed_mps': stats(speeds),
+        'time_to_land_s': stats(times, ('p50', 'p95')),
+        'searches_mean': (sum(r.searches for r in results) / n) if n else 0.0,
+        'max_thrust_n': _json_float(max((r.max_thrust_n for r in results), default=math.nan)),
+        'wall_time_s': round(wall_time_s, 3),
+        'realtime_factor': round(sim_time / wall_time_s, 1) if wall_time_s > 0 else 0.0,
+        'failures': [{'seed': r.seed, 'reason': r.reason} for r in results if not r.success],
+    }
+
+
+def _json_float(x: float) -> float | None:
+    return None if not math.isfinite(x) else round(x, 4)
+
+
+def _worker(job: tuple[str, int, RunConfig]) -> RunResult:
+    scenario_name, seed, config = job
+    from deck_simulator.scenario import load_scenario
+    return run_landing(_cached_scenario(scenario_name, load_scenario), seed, config)
+
+
+_SCENARIO_CACHE: dict[str, Any] = {}
+
+
+def _cached_scenario(name, loader):
+    if name not in _SCENARIO_CACHE:
+        _SCENARIO_CACHE[name] = loader(name)
+    return _SCENARIO_CACHE[name]
+
+
+def run_campaign(scenario: str, runs: int, seed: int, config: RunConfig, workers: int = 0,
+                 progress: bool = True) -> tuple[dict[str, Any], list[RunResult]]:
+    """Run ``runs`` seeded landings on a process pool; return (report, per-run results)."""
+    from deck_simulator.scenario import load_scenario
+    scen = load_scenario(scenario)  # fail early on a bad scenario, before forking
+    workers = workers or os.cpu_count() or 1
+    jobs = [(scenario, run_seed(seed, i), config) for i in range(runs)]
+    start = time.perf_counter()
+    results: list[RunResult] = []
+    label = f'{scen.name}/{config.controller}'
+    if workers == 1 or runs == 1:
+        for job in jobs:
+            results.append(_worker(job))
+            if progress:
+                _progress(label, len(results), runs, start)
+    else:
+        ctx = mp.get_context('fork' if sys.platform.startswith('linux') else 'spawn')
+        with ctx.Pool(workers) as pool:
+            for res in pool.imap_unordered(_worker, jobs, chunksize=max(1, runs // (workers * 8))):
+                results.append(res)
+                if progress:
+                    _progress(label, len(results), runs, start)
+    wall = time.perf_counter() - start
+    if progress:
+        sys.stderr.write('\n')
+    results.sort(key=lambda r: r.seed)
+    return summarize(results, scen.name, config.controller, seed, wall), results
+
+
+def _progress(label: str, done: int, total: int, start: float) -> None:
+    width = 30
+    filled = int(width * done / total)
+    elapsed = time.perf_counter() - start
+    eta = elapsed / done * (total - done) if done else 0.0
+    sys.stderr.write(f'\r{label:<24} [{"#" * filled}{"." * (width - filled)}] '
+                     f'{done}/{total}  {elapsed:5.1f}s  eta {eta:5.1f}s')
+    sys.stderr.flush()
+
+
+def format_table(reports: list[dict[str, Any]]) -> str:
+    """Side-by-side summary of one or more campaign reports."""
+    rows = [
+        ('success', lambda r: f'{100 * r["success_rate"]:.1f} %'),
+        ('fallback', lambda r: f'{100 * r["fallback_rate"]:.1f} %'),
+        ('crash', lambda r: f'{100 * r["crash_rate"]:.1f} %'),
+        ('error p50 [m]', lambda r: _fmt(r['horizontal_error_m']['p50'])),
+        ('error p95 [m]', lambda r: _fmt(r['horizontal_error_m']['p95'])),
+        ('error max [m]', lambda r: _fmt(r['horizontal_error_m']['max'])),
+        ('td speed p50 [m/s]', lambda r: _fmt(r['touchdown_speed_mps']['p50'])),
+        ('td speed p95 [m/s]', lambda r: _fmt(r['touchdown_speed_mps']['p95'])),
+        ('td speed max [m/s]', lambda r: _fmt(r['touchdown_speed_mps']['max'])),
+        ('time p50 [s]', lambda r: _fmt(r['time_to_land_s']['p50'], 1)),
+        ('time p95 [s]', lambda r: _fmt(r['time_to_land_s']['p95'], 1)),
+        ('searches/run', lambda r: f'{r["searches_mean"]:.2f}'),
+        ('max thrust [N]', lambda r: _fmt(r['max_thrust_n'], 1)),
+        ('realtime factor', lambda r: f'{r["realtime_factor"]:.0f}'),
+        ('wall time [s]', lambda r: f'{r["wall_time_s"]:.1f}'),
+    ]
+    head = f'{"scenario " + reports[0]["scenario"]:<22}' + ''.join(
+        f'{r["controller"]:>16}' for r in reports)
+    lines = [head, f'{"runs":<22}' + ''.join(f'{r["runs"]:>16}' for r in reports)]
+    for name, fn in rows:
+        lines.append(f'{name:<22}' + ''.join(f'{fn(r):>16}' for r in reports))
+    return '\n'.join(lines)
+
+
+def _fmt(x, digits=3) -> str:
+    return '-' if x is None else f'{x:.{digits}f}'
+
+
+def write_plots(per_controller: dict[str, list[RunResult]], out_dir: pathlib.Path,
+                scenario: str) -> list[pathlib.Path]:
+    """PNG distributions of touchdown error and speed per controller."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for key, label, unit in (('horizontal_error_m', 'horizontal error at touchdown', 'm'),
+                             ('touchdown_speed_mps', 'touchdown speed (relative)', 'm/s')):
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for controller, results in per_controller.items():
+            xs = [getattr(r, key) for r in results if r.landed_on_deck]
+            if xs:
+                ax.hist(xs, bins=30, alpha=0.5, label=f'{controller} (n={len(xs)})')
+        ax.set_xlabel(f'{label} [{unit}]')
+        ax.set_ylabel('runs')
+        ax.set_title(f'{scenario}: {label}')
+        ax.legend()
+        fig.tight_layout()
+        path = out_dir / f'{scenario}_{key}.png'
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def _cmd_campaign(args: argparse.Namespace) -> int:
+    controllers = list(CONTROLLERS) if args.compare else [args.controller]
+    reports, per_controller = [], {}
+    for controller in controllers:
+        config = RunConfig(controller=controller, gains_profile=args.profile)
+        report, results = run_campaign(args.scenario, args.runs, args.seed, config,
+                                       workers=args.workers, progress=not args.quiet)
+        reports.append(report)
+        per_controller[controller] = results
+    print(format_table(reports))
+    for report in reports:
+        for failure in report['failures'][:10]:
+            print(f'  {report["controller"]} failed seed {failure["seed"]}: {failure["reason"]}')
+    if args.out:
+        out = pathlib.Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        payload = reports[0] if len(reports) == 1 else {'compare': reports}
+        out.write_text(json.dumps(payload, indent=2) + '\n')
+        print(f'wrote {out}')
+    if args.plots:
+        for path in write_plots(per_controller, pathlib.Path(args.plots), reports[0]['scenario']):
+            print(f'wrote {path}')
+    return 0
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from deck_simulator.scenario import load_scenario
+    scenario = load_scenario(args.scenario)
+    config = RunConfig(controller=args.controller, gains_profile=args.profile,
+                       record=bool(args.csv))
+    result = run_landing(scenario, args.seed, config)
+    print(json.dumps(result.summary(), indent=2, default=_json_default))
+    if args.csv:
+        path = pathlib.Path(args.csv)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        keys = list(result.trace)
+        with path.open('w') as fh:
+            fh.write(','.join(keys) + '\n')
+            for row in zip(*(result.trace[k] for k in keys), strict=True):
+                fh.write(','.join(f'{v:.5g}' for v in row) + '\n')
+        print(f'wrote {path}')
+    return 0 if result.success else 1
+
+
+def _json_default(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return str(x)
+
+
+def register(sub) -> None:
+    p = sub.add_parser('campaign', help='run many seeded simulated landings and summarise')
+    p.add_argument('--scenario', default='paper', help='built-in name or YAML file')
+    p.add_argument('--runs', type=int, default=100)
+    p.add_argument('--seed', type=int, default=1)
+    p.add_argument('--controller', choices=CONTROLLERS, default='dob')
+    p.add_argument('--profile', default='default', help="gains profile ('default' or 'paper')")
+    p.add_argument('--compare', action='store_true', help='run every controller on the same seeds')
+    p.add_argument('--workers', type=int, default=0, help='processes (default: all cores)')
+    p.add_argument('--out', help='write the JSON report here')
+    p.add_argument('--plots', help='write PNG distributions into this directory')
+    p.add_argument('--quiet', action='store_true', help='no progress bar')
+    p.set_defaults(func=_cmd_campaign)
+
+    s = sub.add_parser('sim', help='fly one seeded simulated landing in-process')
+    s.add_argument('--scenario', default='paper')
+    s.add_argument('--seed', type=int, default=1)
+    s.add_argument('--controller', choices=CONTROLLERS, default='dob')
+    s.add_argument('--profile', default='default')
+    s.add_argument('--csv', help='write the time series of the run to this CSV')
+    s.set_defaults(func=_cmd_sim)

@@ -1,0 +1,235 @@
+"""In-process closed-loop landing runs: the simulator plus the same cores the nodes run.
+
+One run is the paper's mission (section 4.2): hovering at the start, landing triggered at
+t = 0, GPS approach to the landing area, search if needed, precision landing, touchdown and
+disarm — or a fallback. Everything is stepped in lock-step at the real rates (physics 400 Hz,
+estimator/planner/controllers 100 Hz, camera 50 Hz with its latency), deterministically for a
+seed, without ROS. The wiring here mirrors the node graph (docs/interfaces.md): each block
+below corresponds to one node's callback.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+import math
+from typing import Any
+
+from apron_estimator.estimator import ApronEstimator, EstimatorParams
+from apron_estimator.types import PixyBlock
+from deck_simulator.scenario import Scenario
+from deck_simulator.world import World
+from dob_altitude.dob import DobAltitudeController, DobParams
+from dob_altitude.pid import PidAltitudeController, PidParams
+from dob_altitude.types import AltitudeInput
+from landing_planner.horizontal import HorizontalController, HorizontalParams
+from landing_planner.planner import LandingPlanner, PlannerParams
+from landing_planner.types import Mode, VehicleState
+
+CONTROLLERS = ('dob', 'pid', 'constant-rate')
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """How one run is flown (the scenario says what the world does)."""
+
+    controller: str = 'dob'
+    gains_profile: str = 'default'
+    physics_hz: int = 400
+    control_hz: int = 100
+    camera_hz: int = 50
+    settle_after_contact_s: float = 0.5
+    record: bool = False
+    dob_overrides: tuple[tuple[str, float], ...] = ()
+    pid_overrides: tuple[tuple[str, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f'controller must be one of {CONTROLLERS}, got {self.controller!r}')
+        if self.physics_hz % self.control_hz or self.physics_hz % self.camera_hz:
+            raise ValueError('physics_hz must be a multiple of control_hz and camera_hz')
+        if self.physics_hz < 400:
+            raise ValueError('physics_hz must be >= 400 (the Pixhawk attitude loop rate)')
+
+
+@dataclass
+class RunResult:
+    """Outcome of one run (the fields of a campaign's per-run record)."""
+
+    seed: int
+    scenario: str
+    controller: str
+    landed_on_deck: bool = False
+    success: bool = False
+    crash: bool = False
+    fallback: bool = False
+    contact_kind: str = 'none'
+    horizontal_error_m: float = math.nan
+    touchdown_speed_mps: float = math.nan
+    time_to_land_s: float = math.nan
+    searches: int = 0
+    max_thrust_n: float = 0.0
+    final_mode: str = ''
+    reason: str = ''
+    sim_time_s: float = 0.0
+    trace: dict[str, list[float]] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        out = asdict(self)
+        out.pop('trace')
+        return out
+
+
+def make_altitude_controller(config: RunConfig):
+    """The altitude controller a run uses (the dob_altitude node makes the same choice)."""
+    if config.controller == 'dob':
+        params = DobParams.profile(config.gains_profile)
+        if config.dob_overrides:
+            params = _replace(params, config.dob_overrides)
+        return DobAltitudeController(params)
+    params = PidParams.profile(config.gains_profile)
+    if config.pid_overrides:
+        params = _replace(params, config.pid_overrides)
+    return PidAltitudeController(params)
+
+
+def _replace(params, overrides):
+    from dataclasses import replace
+    return replace(params, **dict(overrides))
+
+
+def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
+    """The planner is told only what an operator knows: where the landing area is."""
+    ax, ay = scenario.apron.position_m
+    profile = 'constant_rate' if config.controller == 'constant-rate' else 'deck_relative'
+    return PlannerParams(landing_area_m=(float(ax), float(ay)), descent_profile=profile)
+
+
+TRACE_FIELDS = (
+    't', 'x', 'y', 'z', 'x_true', 'y_true', 'z_true', 'deck_z', 'height_est', 'height_true',
+    'closing_est', 'closing_true', 'z_d', 'thrust', 'sigma', 'd_hat', 'visible', 'tracked',
+    'rel_x_body', 'rel_y_body', 'rel_vx_body', 'rel_vy_body', 'rel_x_body_true', 'rel_y_body_true',
+    'mode',
+)
+
+
+def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) -> RunResult:
+    """Fly one seeded landing of ``scenario`` and return its outcome."""
+    config = config or RunConfig()
+    world = World(scenario, seed)
+    estimator = ApronEstimator(EstimatorParams())
+    planner = LandingPlanner(planner_params_for(scenario, config))
+    altitude = make_altitude_controller(config)
+    world_altitude = (PidAltitudeController(PidParams.profile('default'))
+                      if config.controller == 'constant-rate' else None)
+    horizontal = HorizontalController(HorizontalParams())
+
+    result = RunResult(seed=seed, scenario=scenario.name, controller=config.controller)
+    trace: dict[str, list[float]] = {k: [] for k in TRACE_FIELDS} if config.record else {}
+    modes = list(Mode)
+
+    dt = 1.0 / config.physics_hz
+    ctrl_div = config.physics_hz // config.control_hz
+    cam_div = config.physics_hz // config.camera_hz
+    dt_ctrl = 1.0 / config.control_hz
+    n_steps = math.ceil(scenario.timeout_s * config.physics_hz)
+
+    t_contact = None
+    mode = Mode.IDLE
+    started = False
+
+    for k in range(n_steps + 1):
+        t = k * dt
+        frame = world.read_camera() if k % cam_div == 0 else None
+        if k % ctrl_div == 0:
+            # --- mavlink_bridge: vehicle state from the autopilot -------------------------
+            pos, vel = world.read_local_position()
+            roll, pitch, yaw = world.read_attitude()
+            estimator.on_attitude(t, roll, pitch, yaw)
+            estimator.on_local_position(t, pos, vel)
+            estimator.on_accel(t, world.read_accel_world())
+            estimator.on_lidar(t, world.read_lidar())
+        if frame is not None:
+            # --- pixy_driver: the frame arrives now, stamped at its (earlier) exposure -------
+            estimator.on_camera(frame[0], [PixyBlock(*b) for b in frame[1]])
+        if k % ctrl_div == 0:
+            # --- apron_estimator -> landing_planner -------------------------------------
+            apron = estimator.state(t)
+            if not started:
+                planner.start_landing(t)
+                started = True
+            vehicle = VehicleState(t_s=t, position_m=pos, velocity_mps=vel, roll_rad=roll,
+                                   pitch_rad=pitch, yaw_rad=yaw)
+            out = planner.step(t, dt_ctrl, vehicle, apron)
+            mode = out.mode
+            roll_cmd, pitch_cmd = horizontal.step(out.setpoint_m, out.velocity_ff_mps,
+                                                  (pos[0], pos[1]), (vel[0], vel[1]), yaw,
+                                                  dt_ctrl)
+            # --- dob_altitude ------------------------------------------------------------
+            vert = apron.vertical
+            if world_altitude is not None and getattr(out, 'vertical_mode', '') == 'world_rate':
+                ctrl = world_altitude
+                inp = AltitudeInput(
+                    z_m=vert.vehicle_altitude_m, z_dot_mps=vert.vehicle_vz_mps,
+                    z_d_m=out.z_d_m, z_d_dot_mps=out.z_d_dot_mps, z_d_ddot_mps2=out.z_d_ddot_mps2,
+                    roll_rad=roll, pitch_rad=pitch,
+                    rotor_height_m=vert.height_m + 0.05)
+            else:
+                ctrl = altitude
+                inp = AltitudeInput(
+                    z_m=vert.height_m, z_dot_mps=vert.closing_speed_mps,
+                    z_d_m=out.z_d_m, z_d_dot_mps=out.z_d_dot_mps, z_d_ddot_mps2=out.z_d_ddot_mps2,
+                    roll_rad=roll, pitch_rad=pitch, rotor_height_m=vert.height_m + 0.05)
+            alt_out = ctrl.step(inp, dt_ctrl)
+            thrust = alt_out.thrust_n if out.thrust_enabled else 0.0
+            world.set_command(roll_cmd, pitch_cmd, out.yaw_rad, thrust)
+            if config.record:
+                truth = world.truth()
+                _record(trace, t, pos, truth, vert, apron, out, alt_out, modes.index(mode))
+        world.step(dt)
+        if world.contact is not None and t_contact is None:
+            t_contact = world.t_s
+        if t_contact is not None and (world.t_s - t_contact >= config.settle_after_contact_s
+                                      or mode is Mode.LANDED):
+            break
+
+    outcome = world.outcome()
+    result.max_thrust_n = outcome.max_thrust_n
+    result.final_mode = mode.name
+    result.searches = planner.searches
+    result.sim_time_s = world.t_s
+    if outcome.contact_kind == 'none':
+        result.reason = f'no touchdown within {scenario.timeout_s:.0f} s (mode {mode.name})'
+    else:
+        result.contact_kind = outcome.contact_kind
+        result.touchdown_speed_mps = outcome.touchdown_speed_mps
+        result.horizontal_error_m = outcome.horizontal_error_m
+        result.time_to_land_s = outcome.t_s
+        result.landed_on_deck = outcome.landed_on_deck
+        result.crash = outcome.crash
+        result.fallback = outcome.fallback
+        result.success = outcome.landed_on_deck and not outcome.crash
+        result.reason = outcome.reason
+    if config.record:
+        result.trace = trace
+    return result
+
+
+def _record(trace, t, pos, truth, vert, apron, out, alt_out, mode_index) -> None:
+    from deckland_common.frames import world_to_body_xy
+    vx, vy, vz = truth.position_m
+    bx, by = truth.beacon_position_m[0], truth.beacon_position_m[1]
+    rbx, rby = world_to_body_xy(bx - vx, by - vy, truth.yaw_rad)
+    row = {
+        't': t, 'x': pos[0], 'y': pos[1], 'z': pos[2], 'x_true': vx, 'y_true': vy,
+        'z_true': vz, 'deck_z': truth.deck_height_m, 'height_est': vert.height_m,
+        'height_true': truth.height_above_surface_m, 'closing_est': vert.closing_speed_mps,
+        'closing_true': truth.velocity_mps[2] - truth.deck_vz_mps, 'z_d': out.z_d_m,
+        'thrust': alt_out.thrust_n,
+        'sigma': alt_out.sigma, 'd_hat': alt_out.d_hat_mps2, 'visible': float(apron.visible),
+        'tracked': float(apron.tracked), 'rel_x_body': apron.rel_position_body_m[0],
+        'rel_y_body': apron.rel_position_body_m[1], 'rel_vx_body': apron.rel_velocity_body_mps[0],
+        'rel_vy_body': apron.rel_velocity_body_mps[1], 'rel_x_body_true': rbx,
+        'rel_y_body_true': rby, 'mode': float(mode_index),
+    }
+    for key, value in row.items():
+        trace[key].append(value)
