@@ -35,6 +35,9 @@ from apron_estimator import _validate as chk
 from apron_estimator.horizontal import AccelIntegrator
 from apron_estimator.types import VerticalState
 
+_UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
+_SYM = tuple(tuple(_UPPER.index((min(i, j), max(i, j))) for j in range(5)) for i in range(5))
+
 
 @dataclass(frozen=True)
 class VerticalParams:
@@ -97,7 +100,7 @@ class VerticalFilter:
 
     def reset(self) -> None:
         self.x = [0.0] * 5
-        self.P = [[0.0] * 5 for _ in range(5)]
+        self._p = [0.0] * 15
         self.t: float | None = None          # filter time
         self.initialised = False
         self.surface_epoch = 0
@@ -110,9 +113,22 @@ class VerticalFilter:
         self._alt: tuple[float, float | None] | None = None  # last (z, vz) before init
         self._pending: list[tuple[float, float]] = []         # (t, innovation) of a jump run
 
+    # -- covariance storage ----------------------------------------------------------------
+    # P is kept as its upper triangle, flat: [00, 01, 02, 03, 04, 11, 12, 13, 14, 22, 23, 24,
+    # 33, 34, 44] (the unrolled predict below is ~3x faster than 5×5 list arithmetic).
+    @property
+    def P(self) -> list[list[float]]:
+        """The full 5×5 covariance (a copy)."""
+        u = self._p
+        return [[u[_SYM[i][j]] for j in range(5)] for i in range(5)]
+
+    @P.setter
+    def P(self, full: list[list[float]]) -> None:
+        self._p = [0.5 * (full[i][j] + full[j][i]) for i, j in _UPPER]
+
     # -- prediction ------------------------------------------------------------------------
     def _predict(self, t_s: float) -> None:
-        """(Singer) model over [self.t, t_s]; see the module docstring."""
+        """(Singer) model over [self.t, t_s]: x ← F x (+ input), P ← F P Fᵀ + Q (unrolled)."""
         dt = t_s - self.t
         if dt <= 0.0:
             return
@@ -122,65 +138,55 @@ class VerticalFilter:
         x[0] += x[1] * dt + dp
         x[1] += dv
         dt2 = dt * dt
+        dt3 = dt2 * dt
         h2 = 0.5 * dt2
-        sa2 = p.surface_accel_sigma_mps2 ** 2
-        if self._accel_state:
-            phi = math.exp(-dt / p.surface_tau_s)
-            qs = 2.0 * sa2 / p.surface_tau_s
-            qaa = sa2 * (1.0 - phi * phi)
-        else:
-            phi = 0.0
-            qs = 2.0 * sa2 * p.surface_tau_s
-            qaa = 0.0
+        sa2 = p.surface_accel_sigma_mps2 * p.surface_accel_sigma_mps2
+        tau = p.surface_tau_s
         x[2] += x[3] * dt + h2 * x[4]
         x[3] += x[4] * dt
-        x[4] *= phi
-        P = self.P
-        # M = F P (row operations)
-        r0 = [a + dt * b for a, b in zip(P[0], P[1], strict=True)]
-        r1 = P[1]
-        r2 = [a + dt * b + h2 * c for a, b, c in zip(P[2], P[3], P[4], strict=True)]
-        r3 = [a + dt * b for a, b in zip(P[3], P[4], strict=True)]
-        r4 = [phi * a for a in P[4]]
-        # P = M Fᵀ (the same operations on the columns)
-        new = []
-        for r in (r0, r1, r2, r3, r4):
-            new.append([r[0] + dt * r[1], r[1], r[2] + dt * r[3] + h2 * r[4],
-                        r[3] + dt * r[4], phi * r[4]])
-        dt3 = dt2 * dt
-        qv = p.vehicle_accel_psd_m2ps3
-        new[0][0] += qv * dt3 / 3.0
-        new[0][1] += qv * h2
-        new[1][0] += qv * h2
-        new[1][1] += qv * dt
+        (p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34,
+         p44) = self._p
         if self._accel_state:
+            phi = math.exp(-dt / tau)
+            qs = 2.0 * sa2 / tau
             q22, q23, q24 = qs * dt3 * dt2 / 20.0, qs * dt3 * dt / 8.0, qs * dt3 / 6.0
-            q33, q34 = qs * dt3 / 3.0, qs * h2
-            new[2][2] += q22
-            new[2][3] += q23
-            new[3][2] += q23
-            new[2][4] += q24
-            new[4][2] += q24
-            new[3][3] += q33
-            new[3][4] += q34
-            new[4][3] += q34
-            new[4][4] += qaa
+            q33, q34, q44 = qs * dt3 / 3.0, qs * h2, sa2 * (1.0 - phi * phi)
         else:
-            new[2][2] += qs * dt3 / 3.0
-            new[2][3] += qs * h2
-            new[3][2] += qs * h2
-            new[3][3] += qs * dt
-        self.P = new
+            phi = 0.0
+            qs = 2.0 * sa2 * tau
+            q22, q23, q24, q33, q34, q44 = qs * dt3 / 3.0, qs * h2, 0.0, qs * dt, 0.0, 0.0
+        x[4] *= phi
+        qv = p.vehicle_accel_psd_m2ps3
+        # M = F P, rows 0, 2, 3 (row 1 is P's, row 4 is φ P's)
+        m00, m01, m02 = p00 + dt * p01, p01 + dt * p11, p02 + dt * p12
+        m03, m04 = p03 + dt * p13, p04 + dt * p14
+        m22 = p22 + dt * p23 + h2 * p24
+        m23 = p23 + dt * p33 + h2 * p34
+        m24 = p24 + dt * p34 + h2 * p44
+        m33, m34 = p33 + dt * p34, p34 + dt * p44
+        # P = M Fᵀ + Q (upper triangle)
+        self._p = [
+            m00 + dt * m01 + qv * dt3 / 3.0, m01 + qv * h2, m02 + dt * m03 + h2 * m04,
+            m03 + dt * m04, phi * m04,
+            p11 + qv * dt, p12 + dt * p13 + h2 * p14, p13 + dt * p14, phi * p14,
+            m22 + dt * m23 + h2 * m24 + q22, m23 + dt * m24 + q23, phi * m24 + q24,
+            m33 + dt * m34 + q33, phi * m34 + q34,
+            phi * phi * p44 + q44,
+        ]
         self.t = t_s
+
+    def _column(self, k: int) -> list[float]:
+        u = self._p
+        return [u[_SYM[i][k]] for i in range(5)]
 
     def _scalar_update(self, c: list[float], s: float, nu: float) -> None:
         """x ← x + c ν/S, P ← P − c cᵀ/S with c = P Hᵀ (symmetric by construction)."""
-        k = [ci / s for ci in c]
+        f = nu / s
         x = self.x
         for i in range(5):
-            x[i] += k[i] * nu
-        self.P = [[pij - ki * cj for pij, cj in zip(row, c, strict=True)]
-                  for row, ki in zip(self.P, k, strict=True)]
+            x[i] += c[i] * f
+        inv = 1.0 / s
+        self._p = [pij - c[i] * c[j] * inv for pij, (i, j) in zip(self._p, _UPPER, strict=True)]
 
     def _advance(self, src: str, t_s: float) -> bool:
         """Common stamp handling: per-source order, late tolerance, prediction."""
@@ -219,21 +225,19 @@ class VerticalFilter:
             self._alt = (z_m, vz_mps)
             return
         p = self.params
-        P = self.P
-        s = P[0][0] + p.sigma_altitude_m ** 2
+        s = self._p[0] + p.sigma_altitude_m ** 2
         nu = z_m - self.x[0]
         if nu * nu / s > p.altitude_gate:
             self.rejected['altitude_gated'] += 1
         else:
-            self._scalar_update([row[0] for row in P], s, nu)
+            self._scalar_update(self._column(0), s, nu)
         if vz_mps is not None and p.use_vz:
-            P = self.P
-            s = P[1][1] + p.sigma_vz_mps ** 2
+            s = self._p[5] + p.sigma_vz_mps ** 2
             nu = vz_mps - self.x[1]
             if nu * nu / s > p.altitude_gate:
                 self.rejected['altitude_gated'] += 1
             else:
-                self._scalar_update([row[1] for row in P], s, nu)
+                self._scalar_update(self._column(1), s, nu)
 
     def on_lidar(self, t_s: float, range_m: float | None, roll_rad: float = 0.0,
                  pitch_rad: float = 0.0) -> None:
@@ -261,9 +265,9 @@ class VerticalFilter:
         if not self.initialised:
             self._initialise(t_s, h)
             return
-        P = self.P
         r = p.sigma_lidar_m ** 2
-        c = [row[0] - row[2] for row in P]
+        u = self._p
+        c = [u[0] - u[2], u[1] - u[6], u[2] - u[9], u[3] - u[10], u[4] - u[11]]
         s = c[0] - c[2] + r
         nu = h - (self.x[0] - self.x[2])
         thr = max(p.jump_threshold_m, p.jump_sigma * math.sqrt(max(s, 0.0)))
@@ -320,6 +324,7 @@ class VerticalFilter:
         P[2][2] = P[0][0] + r
         P[3][3] = p.rebase_vs_sigma_mps ** 2
         P[4][4] = p.surface_accel_sigma_mps2 ** 2 if self._accel_state else 0.0
+        self.P = P
 
     def _rebase(self, jump_m: float, h: float) -> None:
         """z_s += jump (the mean of the run's −innovations, i.e. z_v − h averaged over the
