@@ -15,8 +15,9 @@ so positive pitch (nose down) accelerates forward and positive roll (right side 
 accelerates to −y body — the conventions of :mod:`deckland_common.frames`.
 
 Control law (world ENU): a_cmd = k_p e_p + k_d (v_ff − v) + k_i ∫ e_p dt, limited in norm to
-min(max_accel, g tan(max_tilt)). The integrator is frozen while the command is saturated and
-the error would push it further (conditional integration) and is itself clamped.
+min(max_accel, g tan(max_tilt)). The integrator runs only while |e_p| < integral_zone (it is
+for steady disturbances such as wind, not for the transit), is frozen while the command is
+saturated and the error would push it further (conditional integration), and is clamped.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ class HorizontalParams:
     max_accel_mps2: float = 3.0
     max_tilt_rad: float = math.radians(20.0)
     max_integral_accel_mps2: float = 1.0   # clamp of |k_i ∫e| (each axis)
+    integral_zone_m: float = 0.5           # integrate only while |e_p| is below this
     gravity_mps2: float = 9.81
 
     def __post_init__(self) -> None:
@@ -44,7 +46,7 @@ class HorizontalParams:
             value = getattr(self, f.name)
             if not (isinstance(value, (int, float)) and math.isfinite(value)):
                 raise ValueError(f'HorizontalParams.{f.name} must be finite, got {value!r}')
-        for name in ('kp', 'max_accel_mps2', 'gravity_mps2'):
+        for name in ('kp', 'max_accel_mps2', 'gravity_mps2', 'integral_zone_m'):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f'HorizontalParams.{name} must be > 0')
         for name in ('kd', 'ki', 'max_integral_accel_mps2'):
@@ -122,8 +124,10 @@ class HorizontalController:
             k = self._a_lim / norm
             ax *= k
             ay *= k
-        # conditional integration: skip while saturated and the error points outward
-        if p.ki > 0.0 and not (saturated and ex * ax + ey * ay > 0.0):
+        # conditional integration: only near the setpoint (the integrator is for steady
+        # disturbances, not for the transit) and not while saturated outward
+        if (p.ki > 0.0 and ex * ex + ey * ey < p.integral_zone_m * p.integral_zone_m
+                and not (saturated and ex * ax + ey * ay > 0.0)):
             i_max = p.max_integral_accel_mps2 / p.ki
             self._ix = max(-i_max, min(i_max, self._ix + ex * dt_s))
             self._iy = max(-i_max, min(i_max, self._iy + ey * dt_s))
