@@ -1,0 +1,379 @@
+"""Each guarded transition of the landing state machine, driven with hand-made states."""
+
+import itertools
+import math
+
+from landing_planner.planner import LandingPlanner, PlannerParams
+from landing_planner.types import Mode
+import pytest
+from test_planner_support import make_apron, make_vehicle, make_vertical
+
+DT = 0.01
+AREA = (0.0, 0.0)
+
+
+class Driver:
+    """Steps a planner at 100 Hz with a vehicle that sits exactly where it is told."""
+
+    def __init__(self, params=None, xy=AREA, height=2.0):
+        self.p = LandingPlanner(params or PlannerParams(landing_area_m=AREA))
+        self.t = 0.0
+        self.xy = xy
+        self.height = height
+        self.closing = 0.0
+        self.beacon = None          # None = not tracked
+        self.epoch = 0
+        self.rebase = 0.0
+        self.valid = True
+        self.surface = 0.0
+        self.landed_flag = False
+        self.out = None
+
+    def step(self):
+        vert = make_vertical(self.height, self.closing, self.surface, self.epoch, self.rebase,
+                             self.valid)
+        apron = make_apron(self.t, self.xy, self.beacon, vert)
+        veh = make_vehicle(self.t, self.xy, self.height + self.surface, landed=self.landed_flag)
+        self.out = self.p.step(self.t, DT, veh, apron)
+        self.t = round(self.t + DT, 9)
+        return self.out
+
+    def run(self, duration, until=None):
+        end = self.t + duration
+        while self.t < end - 1e-9:
+            self.step()
+            if until is not None and self.out.mode is until:
+                break
+        return self.out
+
+
+def aligned_driver(**kw):
+    d = Driver(PlannerParams(landing_area_m=AREA, **kw))
+    d.beacon = (0.05, 0.0)
+    d.p.start_landing(0.0)
+    d.run(0.05)
+    assert d.out.mode is Mode.ALIGN
+    return d
+
+
+def test_params_validation_names_the_field():
+    with pytest.raises(ValueError, match='acceptance_radius_m'):
+        PlannerParams(acceptance_radius_m=-0.1)
+    with pytest.raises(ValueError, match='descent_profile'):
+        PlannerParams(descent_profile='yolo')
+    with pytest.raises(ValueError, match='landing_area_m'):
+        PlannerParams(landing_area_m=(math.nan, 0.0))
+    with pytest.raises(ValueError, match='final_approach_height_m'):
+        PlannerParams(final_approach_height_m=3.0)
+    with pytest.raises(ValueError, match='max_searches'):
+        PlannerParams(max_searches=-1)
+
+
+def test_services_follow_trigger_semantics():
+    p = LandingPlanner(PlannerParams())
+    assert p.abort(0.0)[0] is False               # nothing to abort in IDLE
+    assert p.start_landing(0.0) == (True, 'landing started')
+    assert p.mode is Mode.APPROACH
+    ok, msg = p.start_landing(0.1)
+    assert not ok and 'already landing' in msg
+    assert p.takeoff(0.1)[0] is False
+    assert p.abort(0.2)[0] and p.mode is Mode.HOLD
+    assert p.abort(0.3) == (True, 'already holding')
+    assert p.start_landing(0.4)[0] and p.mode is Mode.APPROACH
+
+
+def test_approach_to_align_when_target_tracked_near_the_area():
+    d = Driver(xy=(-3.0, 0.0))
+    d.p.start_landing(0.0)
+    d.run(1.0)
+    assert d.out.mode is Mode.APPROACH
+    d.beacon = (3.0, 0.0)                      # tracked but 3 m from the area (> 2.5 m)
+    d.run(1.0)
+    assert d.out.mode is Mode.APPROACH
+    d.beacon = (0.3, -0.2)
+    d.step()
+    assert d.out.mode is Mode.ALIGN and 'Step 3' in d.out.reason
+
+
+def test_approach_setpoint_moves_at_limited_speed_along_the_line():
+    params = PlannerParams(landing_area_m=(6.0, 8.0))
+    d = Driver(params, xy=(0.0, 0.0))
+    d.p.start_landing(0.0)
+    sps = [d.step().setpoint_m for _ in range(1200)]
+    steps = [math.dist(a, b) / DT for a, b in itertools.pairwise(sps)]
+    assert max(steps) <= params.approach_speed_mps + 1e-9          # no setpoint jump
+    assert steps[0] < 0.01                                          # starts from rest
+    # the acceleration of the setpoint is bounded too
+    acc = [abs(b - a) / DT for a, b in itertools.pairwise(steps)]
+    assert max(acc) <= params.approach_accel_mps2 + 1e-6
+    # straight line toward the area (cross-track zero) and ends on it
+    for x, y in sps:
+        assert abs(x * 0.8 - y * 0.6) < 1e-9
+    assert sps[-1] == pytest.approx((6.0, 8.0), abs=1e-6)
+    assert d.out.velocity_ff_mps == pytest.approx((0.0, 0.0), abs=1e-9)
+
+
+def test_align_to_descend_after_hold_time_in_radius_only():
+    d = aligned_driver()
+    d.run(0.3)
+    assert d.out.mode is Mode.ALIGN            # 0.5 s hold not yet elapsed
+    d.beacon = (0.3, 0.0)                       # leaves the 0.15 m radius: timer restarts
+    d.run(0.1)
+    d.beacon = (0.05, 0.0)
+    d.run(0.45)
+    assert d.out.mode is Mode.ALIGN
+    d.run(0.1)
+    assert d.out.mode is Mode.DESCEND and 'Step 5 → Step 6' in d.out.reason
+    assert d.out.z_d_dot_mps <= 0.0
+
+
+def test_align_holds_height_and_tracks_the_target_with_feed_forward():
+    d = aligned_driver()
+    d.beacon = (0.5, 0.0)
+    out = d.run(0.5)
+    assert out.z_d_m == pytest.approx(2.0, abs=1e-9) and out.z_d_dot_mps == 0.0
+    assert out.setpoint_m[0] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_descend_pauses_and_realigns_when_drifting_out_of_the_hysteresis_radius():
+    d = aligned_driver()
+    d.run(0.6)
+    assert d.out.mode is Mode.DESCEND
+    d.run(1.0)
+    d.beacon = (0.2, 0.0)                       # 0.2 < 0.15 × 1.5: keep descending
+    d.run(0.2)
+    assert d.out.mode is Mode.DESCEND
+    d.beacon = (0.3, 0.0)                       # 0.3 > 0.225: pause and re-align
+    d.step()
+    assert d.out.mode is Mode.ALIGN and 're-align' in d.out.reason
+    z_before = d.out.z_d_m
+    d.run(2.0)
+    # height held: the reference brakes to a stop within the jerk-limited stopping distance
+    # v (v/A + A/J) / 2 = 0.21 m from 0.4 m/s, and never climbs
+    assert d.out.z_d_dot_mps == pytest.approx(0.0, abs=1e-9)
+    assert z_before - 0.22 < d.out.z_d_m <= z_before
+
+
+def test_descend_to_final_when_vertically_close_and_final_continues_blind():
+    d = aligned_driver()
+    d.run(0.6)
+    d.height = 0.49
+    d.step()
+    assert d.out.mode is Mode.FINAL and 'Step 9' in d.out.reason
+    sp = d.out.setpoint_m
+    d.beacon = None                             # lost below the final-approach height
+    d.run(3.0)
+    assert d.out.mode is Mode.FINAL             # keeps descending
+    assert d.out.setpoint_m == sp and d.out.velocity_ff_mps == (0.0, 0.0)
+    assert d.out.z_d_dot_mps < 0.0
+
+
+def test_final_to_landed_by_height_and_speed_for_the_hold_time():
+    d = aligned_driver()
+    d.run(0.6)
+    d.height = 0.4
+    d.run(0.05)
+    assert d.out.mode is Mode.FINAL
+    d.height, d.closing = 0.17, 0.0             # at gear height (0.15 + 0.05 tolerance)
+    d.run(0.25)
+    assert d.out.mode is Mode.FINAL             # 0.3 s not yet elapsed
+    d.run(0.1)
+    assert d.out.mode is Mode.LANDED and not d.out.thrust_enabled
+    assert 'Step 15' in d.out.reason
+
+
+def test_autopilot_landed_flag_lands_immediately():
+    d = aligned_driver()
+    d.run(0.6)
+    d.height = 0.4
+    d.run(0.05)
+    d.landed_flag = True
+    d.step()
+    assert d.out.mode is Mode.LANDED
+
+
+def test_lost_in_align_goes_to_search_after_timeout():
+    d = aligned_driver()
+    d.beacon = None
+    d.run(0.95)
+    assert d.out.mode is Mode.ALIGN
+    d.run(0.1)
+    assert d.out.mode is Mode.SEARCH and d.out.searches == 1
+    d.run(1.5)
+    assert d.out.z_d_dot_mps > 0.0              # climbing to the search height
+    d.run(6.0)
+    assert d.out.z_d_m == pytest.approx(3.5, abs=1e-9)
+
+
+def test_search_attempts_then_fallback():
+    params = PlannerParams(landing_area_m=AREA, search_timeout_s=5.0, max_searches=2)
+    d = Driver(params, xy=AREA)
+    d.p.start_landing(0.0)
+    d.run(2.5)                                  # at the area, nothing seen for 2 s
+    assert d.out.mode is Mode.SEARCH and d.out.searches == 1
+    d.run(5.0)
+    assert d.out.mode is Mode.SEARCH and d.out.searches == 2
+    d.run(5.0)
+    assert d.out.mode is Mode.FALLBACK and d.out.searches == 2
+    assert 'Step 14' in d.out.reason
+
+
+def test_search_reacquires_to_align():
+    d = Driver(PlannerParams(landing_area_m=AREA), xy=AREA)
+    d.p.start_landing(0.0)
+    d.run(3.0)
+    assert d.out.mode is Mode.SEARCH
+    d.beacon = (0.8, 0.4)
+    d.step()
+    assert d.out.mode is Mode.ALIGN and 'Step 13' in d.out.reason
+
+
+def test_search_pattern_stays_around_the_area():
+    params = PlannerParams(landing_area_m=(2.0, 1.0), search_timeout_s=60.0)
+    d = Driver(params, xy=(2.0, 1.0))
+    d.p.start_landing(0.0)
+    pts = []
+    for _ in range(4000):
+        d.step()
+        pts.append(d.out.setpoint_m)
+    assert d.out.mode is Mode.SEARCH
+    xs = [p[0] for p in pts]
+    ys = [p[1] for p in pts]
+    r = params.search_radius_m
+    assert max(xs) == pytest.approx(2.0 + r, abs=1e-6) and min(xs) == pytest.approx(2.0 - r,
+                                                                                      abs=1e-6)
+    assert max(ys) == pytest.approx(1.0 + r, abs=1e-6) and min(ys) == pytest.approx(1.0 - r,
+                                                                                      abs=1e-6)
+
+
+def test_surface_rebase_shifts_z_d_without_a_rate_step():
+    d = aligned_driver()
+    d.run(0.6)
+    d.run(1.0)                                  # descending at speed
+    before = d.out
+    assert before.mode is Mode.DESCEND and before.z_d_dot_mps < -0.1
+    # the deck slid under the vehicle: the surface below jumped up by 0.6 m
+    d.height -= 0.6
+    d.surface += 0.6
+    d.epoch, d.rebase = 1, 0.6
+    after = d.step()
+    expected = before.z_d_m - 0.6 + before.z_d_dot_mps * DT
+    assert after.z_d_m == pytest.approx(expected, abs=2e-4)
+    assert abs(after.z_d_dot_mps - before.z_d_dot_mps) <= 0.5 * DT + 1e-9
+    assert d.p.rebases == 1
+    # the same epoch again does nothing
+    again = d.step()
+    assert again.z_d_m == pytest.approx(after.z_d_m + after.z_d_dot_mps * DT, abs=2e-4)
+
+
+def test_constant_rate_profile_flies_a_world_ramp():
+    params = PlannerParams(landing_area_m=AREA, descent_profile='constant_rate')
+    d = Driver(params)
+    d.surface = 0.7
+    d.height = 2.0
+    d.beacon = (0.0, 0.0)
+    d.p.start_landing(0.0)
+    d.run(0.55)
+    rel = d.out
+    assert rel.mode is Mode.DESCEND or d.run(0.1).mode is Mode.DESCEND
+    out = d.run(4.0)
+    assert out.vertical_mode == 'world_rate'
+    assert out.z_d_dot_mps == pytest.approx(-params.constant_rate_mps, abs=1e-9)
+    assert out.z_d_m < 2.7                     # world altitude = height + surface at entry
+
+
+def test_world_frame_switch_keeps_the_rate_continuous():
+    params = PlannerParams(landing_area_m=AREA, descent_profile='constant_rate')
+    d = Driver(params)
+    d.surface = 0.7
+    d.beacon = (0.0, 0.0)
+    d.p.start_landing(0.0)
+    outs = [d.step() for _ in range(200)]
+    i = next(k for k, o in enumerate(outs) if o.vertical_mode == 'world_rate')
+    a, b = outs[i - 1], outs[i]
+    assert b.z_d_m == pytest.approx(a.z_d_m + 0.7 + a.z_d_dot_mps * DT, abs=1e-4)
+    assert abs(b.z_d_dot_mps - a.z_d_dot_mps) <= params.vertical_accel_mps2 * DT + 1e-9
+
+
+def test_abort_climbs_to_approach_height_and_holds_position():
+    d = aligned_driver()
+    d.run(0.6)
+    d.run(2.0)
+    assert d.out.mode is Mode.DESCEND
+    d.xy = (0.1, -0.1)
+    ok, _ = d.p.abort(d.t)
+    assert ok
+    out = d.run(0.05)
+    assert out.mode is Mode.HOLD and 'abort' in out.reason
+    assert out.setpoint_m == (0.1, -0.1)
+    out = d.run(8.0)
+    assert out.z_d_m == pytest.approx(2.0, abs=1e-9)
+    assert d.p.start_landing(d.t)[0]
+
+
+def test_invalid_vertical_state_holds_above_final_height():
+    d = aligned_driver()
+    d.run(0.6)
+    d.run(0.5)
+    z0 = d.out.z_d_m
+    d.valid = False
+    d.run(0.4)
+    assert d.out.mode is Mode.DESCEND           # grace period: descent paused
+    assert d.out.z_d_m >= z0 - 0.2
+    d.run(0.2)
+    assert d.out.mode is Mode.HOLD and 'invalid' in d.out.reason
+    assert all(map(math.isfinite, (d.out.z_d_m, d.out.z_d_dot_mps, d.out.z_d_ddot_mps2)))
+
+
+def test_invalid_vertical_state_in_final_falls_back_to_slow_descent():
+    d = aligned_driver()
+    d.run(0.6)
+    d.height = 0.45
+    d.run(0.05)
+    assert d.out.mode is Mode.FINAL
+    d.valid = False
+    d.run(0.45)
+    assert d.out.mode is Mode.FINAL
+    d.run(0.1)
+    assert d.out.mode is Mode.FALLBACK
+    d.run(1.0)
+    assert d.out.z_d_dot_mps < 0.0 and d.out.thrust_enabled
+
+
+def test_nan_inputs_never_reach_the_output():
+    d = aligned_driver()
+    d.run(0.6)
+    good = d.out
+    p = d.p
+    nan_vert = make_vertical(math.nan, 0.0)
+    apron = make_apron(d.t, AREA, (math.nan, 0.0), nan_vert)
+    veh = make_vehicle(d.t, (math.nan, 0.0), math.nan)
+    out = p.step(d.t, DT, veh, apron)
+    assert p.rejected['nan'] >= 2
+    for v in (*out.setpoint_m, *out.velocity_ff_mps, out.z_d_m, out.z_d_dot_mps,
+              out.z_d_ddot_mps2, out.yaw_rad):
+        assert math.isfinite(v)
+    assert out.setpoint_m == good.setpoint_m
+    # out-of-order stamp: rejected, last output returned unchanged
+    stale = p.step(d.t - 1.0, DT, make_vehicle(d.t - 1.0), make_apron(d.t - 1.0))
+    assert stale is out and p.rejected['out_of_order'] == 1
+    assert p.step(math.nan, DT, veh, apron) is out
+    assert p.step(d.t + DT, 0.0, veh, apron) is out and p.rejected['bad_dt'] == 1
+
+
+def test_takeoff_from_landed_climbs_then_holds():
+    d = Driver(PlannerParams(landing_area_m=AREA), height=0.15)
+    d.landed_flag = True
+    out = d.step()
+    assert out.mode is Mode.IDLE and not out.thrust_enabled
+    assert d.p.takeoff(d.t)[0]
+    d.landed_flag = False
+    zs = []
+    for _ in range(800):
+        out = d.step()
+        zs.append(out.z_d_m)
+        d.height = out.z_d_m                     # a perfect vertical loop
+        if out.mode is Mode.HOLD:
+            break
+    assert out.mode is Mode.HOLD and out.reason == 'takeoff complete'
+    assert zs[0] == pytest.approx(0.15, abs=1e-4) and out.thrust_enabled
