@@ -92,12 +92,12 @@ def test_surface_jump_rebases_without_a_closing_speed_spike():
     assert vf.surface_epoch == 2
     assert vf.last_rebase_m == pytest.approx(-(0.6 + 0.3 * math.sin(2 * math.pi * 15 / 6)),
                                              abs=0.05)
-    assert worst < 0.5            # bounded transient while v_s is re-learnt
+    assert worst < 0.3            # bounded transient while v_s is re-learnt
     assert height_err < 0.06
     # the same jumps treated as motion (re-base disabled) spike the closing speed
     naive, worst_naive, _ = run_jumps(VerticalParams(jump_threshold_m=50.0, jump_sigma=1e3))
     assert naive.surface_epoch == 0
-    assert worst_naive > 1.0
+    assert worst_naive > 2.0
 
 
 def test_first_rebase_size_and_epoch_in_the_state():
