@@ -194,6 +194,8 @@ def test_garbage_never_raises_and_never_reaches_the_output():
     est.on_camera(nan, [])
     est.on_camera(t - 1.0, [PixyBlock(1, 160, 100, 5, 5)])
     est.on_camera(t + 0.001, [PixyBlock(1, nan, 100, 5, 5), PixyBlock(1, 160, inf, 5, 5)])
+    est.on_camera(t + 0.002, [(1, 160, 100, 5, 5), None, PixyBlock(1, '160', 100, 5, 5)])
+    assert est.rejected['malformed'] == 3
     for s in (est.state(t + 0.01), est.state(t + 5.0), est.state(nan)):
         assert not any(math.isnan(v) for v in s.to_array())
     assert est.rejected['nan'] >= 8

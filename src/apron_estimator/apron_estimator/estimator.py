@@ -65,7 +65,8 @@ class ApronEstimator:
         self.horizontal = HorizontalTracker(self.params.horizontal)
         self.vertical = VerticalFilter(self.params.vertical)
         self._own: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'no_attitude': 0,
-                                     'no_height': 0, 'signature': 0, 'off_deck': 0}
+                                     'no_height': 0, 'signature': 0, 'off_deck': 0,
+                                     'malformed': 0}
         self._att: deque[tuple[float, float, float, float]] = deque()
         self._pos: tuple[float, tuple[float, float, float], tuple[float, float, float]] | None
         self._pos = None
@@ -174,11 +175,16 @@ class ApronEstimator:
         sig = self.params.beacon_signature
         scored = []
         for b in blocks:
-            if sig and b.signature != sig:
+            try:
+                bsig, x, y, w, h = b.signature, b.x_px, b.y_px, b.width_px, b.height_px
+                finite = _isfinite(x) and _isfinite(y) and _isfinite(w) and _isfinite(h)
+            except (AttributeError, TypeError):
+                self._own['malformed'] += 1
+                continue
+            if sig and bsig != sig:
                 self._own['signature'] += 1
                 continue
-            x, y, w, h = b.x_px, b.y_px, b.width_px, b.height_px
-            if not (_isfinite(x) and _isfinite(y) and _isfinite(w) and _isfinite(h)):
+            if not finite:
                 self._own['nan'] += 1
                 continue
             scored.append((-(w * h), x, y))
