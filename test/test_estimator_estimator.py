@@ -253,3 +253,40 @@ def test_bad_params():
         EstimatorParams(beacon_signature=-1)
     with pytest.raises(ValueError, match='camera'):
         EstimatorParams(camera=None)
+
+
+def test_surface_rebase_rescales_the_horizontal_estimate():
+    """Approach from beside a 0.6 m deck: the lidar sees the ground (h 2.0 m) while the
+    beacon sits on the deck (1.4 m below), so offsets are over-scaled by 2.0/1.4 until the
+    deck comes under the lidar. The re-base must rescale the estimate, not gate the frames."""
+    rng = random.Random(12)
+    est = ApronEstimator()
+    beacon = (1.5, 0.0, 0.6)
+    dt = 0.005
+    over_deck_t = None
+    checked = 0
+    for k in range(int(5.0 / dt)):
+        t = k * dt
+        vx = -0.5 + 0.4 * t     # flies east over the deck at 0.4 m/s, 2 m above the ground
+        est.on_attitude(t, 0.0, 0.0, 1.8)   # flying sideways: the wide image axis ahead
+        est.on_accel(t, (0.0, 0.0, 0.0))
+        under = abs(vx - beacon[0]) < 0.4   # deck radius
+        if k % 2 == 0:
+            est.on_lidar(t, 2.0 - (0.6 if under else 0.0) + rng.gauss(0, 0.01))
+        if k % 10 == 0:
+            est.on_local_position(t, (vx, 0.0, 2.0), (0.4, 0.0, 0.0))
+        if k % 4 == 0:
+            pix = project((beacon[0] - vx, beacon[1], beacon[2] - 2.0), 0.0, 0.0, 1.8)
+            est.on_camera(t, [] if pix is None else [PixyBlock(1, pix[0], pix[1], 5, 5)])
+        if under and over_deck_t is None:
+            over_deck_t = t
+        if over_deck_t is not None and t > over_deck_t + 0.1:
+            s = est.state(t)
+            assert s.tracked
+            assert s.rel_position_m == pytest.approx((beacon[0] - vx, 0.0), abs=0.03)
+            checked += 1
+    assert checked > 100
+    assert est.vertical.surface_epoch == 1
+    assert est.horizontal.events['rescaled'] == 1
+    assert est.rejected['horizontal.gated'] == 0
+    assert est.horizontal.events['lost'] == 0

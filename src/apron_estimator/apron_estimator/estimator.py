@@ -153,7 +153,16 @@ class ApronEstimator:
         """Downward lidar range (None = no return); tilt from the attitude at t_s."""
         att = self.attitude_at(t_s) if _isfinite(t_s) else None
         roll, pitch = (att[0], att[1]) if att is not None else (0.0, 0.0)
-        self.vertical.on_lidar(t_s, range_m, roll, pitch)
+        vf = self.vertical
+        epoch = vf.surface_epoch
+        vf.on_lidar(t_s, range_m, roll, pitch)
+        if vf.surface_epoch != epoch:
+            # The camera offsets scale with the height (29)-(30): a re-base from h_before to
+            # h_after rescales every offset measured from now on by h_after / h_before.
+            h_after = vf.x[0] - vf.x[2]
+            h_before = h_after + vf.last_rebase_m
+            if h_after > 0.05 and h_before > 0.05:
+                self.horizontal.rescale(h_after / h_before)
 
     def on_camera(self, t_s: float, blocks: Sequence[PixyBlock]) -> None:
         """One Pixy frame; ``t_s`` is its exposure stamp (may be in the past)."""

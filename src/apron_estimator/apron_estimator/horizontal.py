@@ -69,6 +69,20 @@ class AxisPairKF:
         self.by += dt * self.cy
         self.cy += qdt
 
+    def scale(self, k: float) -> None:
+        """Multiply the state by k (and P by k²): a change of the measurement's scale."""
+        k2 = k * k
+        self.px *= k
+        self.vx *= k
+        self.py *= k
+        self.vy *= k
+        self.ax *= k2
+        self.bx *= k2
+        self.cx *= k2
+        self.ay *= k2
+        self.by *= k2
+        self.cy *= k2
+
     def nis(self, zx: float, zy: float, r: float) -> float:
         """Normalised innovation squared νᵀ S⁻¹ ν (S is diagonal: the axes are independent)."""
         nx = zx - self.px
@@ -235,7 +249,8 @@ class HorizontalTracker:
         self.kf = AxisPairKF()
         self.accel = AccelIntegrator(self.params.accel_history_s)
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'gated': 0}
-        self.events: dict[str, int] = {'acquired': 0, 'lost': 0, 'restarts': 0}
+        self.events: dict[str, int] = {'acquired': 0, 'lost': 0, 'restarts': 0,
+                                        'rescaled': 0}
         self.reset()
 
     def reset(self) -> None:
@@ -258,6 +273,14 @@ class HorizontalTracker:
             return
         if not self.accel.add(t_s, ax, ay):
             self.rejected['out_of_order'] += 1
+
+    def rescale(self, k: float) -> None:
+        """The height used to scale the camera offsets changed by the factor k (surface
+        re-base): scale the estimate so that it stays consistent with the measurements."""
+        if self.t_filter is None or not (math.isfinite(k) and k > 0.0):
+            return
+        self.kf.scale(k)
+        self.events['rescaled'] += 1
 
     def _control(self, t0: float, t1: float) -> tuple[float, float, float, float]:
         if not self.params.use_accel_input:
