@@ -1,0 +1,300 @@
+"""dob_altitude node end to end through topics (private rclpy context, in-process).
+
+A helper node plays the estimator, planner, bridge IMU and the enable flag at 100 Hz and
+records what the node publishes. Expected values come from the paper's equations:
+(7) e_z, (14) σ, (16) u_z, and the hover thrust m g / γ̄ of (4)/(6).
+"""
+
+from dataclasses import replace
+import math
+import threading
+import time
+
+import pytest
+
+pytestmark = pytest.mark.ros
+
+G = 9.81
+M = 2.71
+R = 0.127
+
+
+def gamma(z_p):
+    """(4) with ρ̄ = 1, written independently."""
+    return 1.0 / (1.0 - (R / (4.0 * z_p)) ** 2)
+
+
+def wait_for(pred, timeout_s=5.0):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+class Helper:
+    """Publishes the node's inputs at 100 Hz and records its outputs (with receipt times)."""
+
+    def __init__(self, context, executor, height_m=1.8, z_d_m=2.0, frame='surface'):
+        from apron_estimator.types import APRON_STATE_LAYOUT, ApronState, VerticalState
+        from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import Vector3Stamped, WrenchStamped
+        from rclpy.node import Node
+        from sensor_msgs.msg import Imu
+        from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
+        from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+        self._Float64MultiArray, self._Dim, self._Imu = Float64MultiArray, MultiArrayDimension, Imu
+        self._Traj, self._Bool = MultiDOFJointTrajectory, Bool
+        self.layout = APRON_STATE_LAYOUT
+        self.node = Node('dobnode_test_helper', context=context)
+        self.vertical = VerticalState(True, height_m, 0.0, height_m + 0.5, 0.0, 0.5, 0.0, 0.0,
+                                      0, 0.0)
+        self.base_state = ApronState.untracked(0.0)
+        self.z_d_m, self.frame = z_d_m, frame
+        self.publish_apron = True
+        self.corrupt = None  # callable(list[float]) -> list[float] | None
+        self.label = APRON_STATE_LAYOUT
+        self.lock = threading.Lock()
+        self.apron_sent: list[tuple[float, float]] = []  # (t_s, monotonic)
+        self.thrust: list[tuple[float, object]] = []
+        self.observer: list[tuple[float, object]] = []
+        self.diagnostics: list = []
+        n = self.node
+        self.pub_apron = n.create_publisher(Float64MultiArray, 'apron/state', RELIABLE_QOS)
+        self.pub_ref = n.create_publisher(MultiDOFJointTrajectory, 'planner/reference',
+                                          RELIABLE_QOS)
+        self.pub_imu = n.create_publisher(Imu, 'vehicle/imu', RELIABLE_QOS)
+        self.pub_enabled = n.create_publisher(Bool, 'control/enabled', LATCHED_QOS)
+        n.create_subscription(WrenchStamped, 'control/thrust',
+                              lambda m: self._record(self.thrust, m), RELIABLE_QOS)
+        n.create_subscription(Vector3Stamped, 'altitude/observer',
+                              lambda m: self._record(self.observer, m), RELIABLE_QOS)
+        n.create_subscription(DiagnosticArray, 'diagnostics', self.diagnostics.append,
+                              RELIABLE_QOS)
+        executor.add_node(n)
+        self.running = False
+        n.create_timer(0.01, self._tick)
+
+    def _record(self, store, msg):
+        with self.lock:
+            store.append((time.monotonic(), msg))
+
+    def now_s(self):
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def _tick(self):
+        if not self.running:
+            return
+        from geometry_msgs.msg import Transform, Twist
+        from trajectory_msgs.msg import MultiDOFJointTrajectoryPoint
+        t = self.now_s()
+        stamp = self.node.get_clock().now().to_msg()
+        if self.publish_apron:
+            data = replace(self.base_state, t_s=t, vertical=self.vertical).to_array()
+            if self.corrupt is not None:
+                data = self.corrupt(data)
+            if data is not None:
+                msg = self._Float64MultiArray(data=data)
+                msg.layout.dim = [self._Dim(label=self.label, size=len(data), stride=len(data))]
+                self.pub_apron.publish(msg)
+                with self.lock:
+                    self.apron_sent.append((t, time.monotonic()))
+        ref = self._Traj()
+        ref.header.stamp = stamp
+        ref.joint_names = [self.frame]
+        tf = Transform()
+        tf.translation.z = self.z_d_m
+        tf.rotation.w = 1.0
+        ref.points = [MultiDOFJointTrajectoryPoint(transforms=[tf], velocities=[Twist()],
+                                                   accelerations=[Twist()])]
+        self.pub_ref.publish(ref)
+        imu = self._Imu()
+        imu.header.stamp = stamp
+        imu.orientation.w = 1.0
+        self.pub_imu.publish(imu)
+
+    def start(self, node):
+        assert wait_for(lambda: self.node.count_publishers('control/thrust') >= 1
+                        and self.node.count_subscribers('apron/state') >= 1)
+        time.sleep(0.2)  # let the endpoints match before the first sample
+        self.running = True
+
+    def pairs(self):
+        """(thrust, observer) message pairs with the same stamp (the same controller step)."""
+        with self.lock:
+            obs = {(o.header.stamp.sec, o.header.stamp.nanosec): o for _, o in self.observer}
+            return [(w, obs[(w.header.stamp.sec, w.header.stamp.nanosec)])
+                    for _, w in self.thrust
+                    if (w.header.stamp.sec, w.header.stamp.nanosec) in obs]
+
+
+def make_node(context, executor, **params):
+    from dob_altitude.node import DobAltitudeNode
+    from rclpy.parameter import Parameter
+    node = DobAltitudeNode(context=context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in params.items()])
+    executor.add_node(node)
+    return node
+
+
+def test_hover_below_reference_commands_law_16_above_hover_thrust(ros_context):
+    context, executor = ros_context
+    node = make_node(context, executor)
+    helper = Helper(context, executor, height_m=1.8, z_d_m=2.0)
+    helper.start(node)
+    assert wait_for(lambda: len(helper.pairs()) >= 40)
+    pairs = helper.pairs()
+    with helper.lock:
+        sent = [t for t, _ in helper.apron_sent]
+    hover = M * G / gamma(1.85)
+    e = -0.2
+    sigma = 10.47 * e / math.sqrt(e * e + 1.0)  # (14) with ė = 0
+    for wrench, obs in pairs:
+        assert wrench.header.frame_id == 'base_link'
+        stamp = wrench.header.stamp.sec + wrench.header.stamp.nanosec * 1e-9
+        assert min(abs(stamp - s) for s in sent) < 1e-6  # the t_s of an apron state used
+        assert obs.vector.z == pytest.approx(e, abs=1e-12)  # (7)
+        assert obs.vector.x == pytest.approx(sigma, rel=1e-9)  # (14)
+        d_hat = obs.vector.y
+        # (16) with ė = 0 → ζ = 0, z̈_d = 0: u = m / γ̄ (g − K σ − d̂)
+        expected = M / gamma(1.85) * (G - 0.85 * sigma - d_hat)
+        assert wrench.wrench.force.z == pytest.approx(expected, rel=1e-9)
+        assert wrench.wrench.force.z > hover + 1.0
+        assert math.isfinite(d_hat) and d_hat <= 0.0
+    # the vehicle does not rise (the helper's state is frozen): d̂ grows more negative
+    assert pairs[-1][1].vector.y < pairs[1][1].vector.y < 0.0
+    assert node.counts['steps'] >= 40 and sum(node.rejected.values()) == 0
+    assert wait_for(lambda: helper.diagnostics, 2.5)
+    status = helper.diagnostics[-1].status[0]
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == status.OK and values['controller'] == 'dob'
+    assert int(values['steps']) > 0
+
+
+def test_stale_apron_state_stops_thrust_and_observer_restarts(ros_context):
+    context, executor = ros_context
+    node = make_node(context, executor, input_timeout_s=0.2)
+    helper = Helper(context, executor)
+    helper.start(node)
+    assert wait_for(lambda: len(helper.thrust) >= 20)
+    helper.publish_apron = False
+    with helper.lock:
+        last_sent = helper.apron_sent[-1][1]
+    time.sleep(0.7)
+    with helper.lock:
+        last_thrust = helper.thrust[-1][0]
+        n_before = len(helper.thrust)
+    assert last_thrust - last_sent < 0.2 + 0.1  # within ~ the timeout
+    assert time.monotonic() - last_thrust > 0.3  # and silence since
+    assert node.withheld['stale'] > 0
+    # inputs come back: thrust resumes and the observer starts fresh (d̂ = 0, decision 6)
+    helper.publish_apron = True
+    assert wait_for(lambda: len(helper.thrust) > n_before + 5)
+    with helper.lock:
+        first_back = helper.observer[n_before][1]
+    assert first_back.vector.y == 0.0
+    assert node.counts['resets'] >= 1
+
+
+def test_nan_and_malformed_apron_state_rejected_never_published(ros_context):
+    context, executor = ros_context
+    node = make_node(context, executor)
+    helper = Helper(context, executor)
+
+    def nan_height(data):
+        data[20] = math.nan
+        return data
+
+    helper.corrupt = nan_height
+    helper.start(node)
+    assert wait_for(lambda: node.rejected['non_finite'] >= 20)
+    assert not helper.thrust  # nothing usable yet → nothing published
+    # alternate good / NaN / wrong size / inf closing speed / wrong layout label
+    count = {'n': 0}
+
+    def mixed(data):
+        count['n'] += 1
+        k = count['n'] % 4
+        if k == 1:
+            data[20] = math.nan
+        elif k == 2:
+            data = data[:-1]
+        elif k == 3:
+            data[21] = math.inf
+        return data
+
+    helper.corrupt = mixed
+    assert wait_for(lambda: len(helper.pairs()) >= 10)
+    helper.label = 'apron_state_v0'
+    assert wait_for(lambda: node.rejected['bad_layout'] >= 5)
+    for wrench, obs in helper.pairs():
+        assert all(math.isfinite(v) for v in (wrench.wrench.force.z, obs.vector.x,
+                                              obs.vector.y, obs.vector.z))
+    assert node.rejected['bad_size'] > 0
+    assert node.controller.rejected['nan'] == 0  # stopped at the adapter, never in the core
+    assert wait_for(lambda: any(
+        kv.key == 'rejected_non_finite' and int(kv.value) > 0
+        for d in helper.diagnostics for kv in d.status[0].values), 2.5)
+
+
+def test_pid_is_selectable_with_gain_overrides(ros_context):
+    context, executor = ros_context
+    node = make_node(context, executor, controller='pid', kp=10.0, kd=4.0)
+    assert node.controller.params.kp == 10.0 and node.controller.params.kd == 4.0
+    helper = Helper(context, executor, height_m=1.8, z_d_m=2.0)
+    helper.start(node)
+    assert wait_for(lambda: len(helper.pairs()) >= 10)
+    ki = node.controller.params.ki
+    for wrench, obs in helper.pairs():
+        # PID: u = m / γ̄ (g − K_p e − K_d ė − K_i ∫e), and its d̂ reports K_i ∫e
+        expected = M / gamma(1.85) * (G + 10.0 * 0.2 - obs.vector.y)
+        assert wrench.wrench.force.z == pytest.approx(expected, rel=1e-9)
+        assert obs.vector.y <= 0.0
+    assert ki == pytest.approx(0.85 * 10.47 * 1.6)  # profile value kept (matched to the DOB)
+
+
+def test_disabled_publishes_nothing_and_world_frame_reference(ros_context):
+    from std_msgs.msg import Bool
+    context, executor = ros_context
+    node = make_node(context, executor)
+    # world frame: vehicle altitude 2.3 (height 1.8 above a deck at 0.5), z_d = 2.5 world
+    helper = Helper(context, executor, height_m=1.8, z_d_m=2.5, frame='world')
+    helper.pub_enabled.publish(Bool(data=False))
+    helper.start(node)
+    assert wait_for(lambda: node.withheld['disabled'] >= 20)
+    assert not helper.thrust
+    helper.pub_enabled.publish(Bool(data=True))
+    assert wait_for(lambda: len(helper.pairs()) >= 5)
+    wrench, obs = helper.pairs()[0]
+    assert obs.vector.z == pytest.approx(2.3 - 2.5, abs=1e-9)  # e_z on the world altitude
+    assert obs.vector.y == 0.0  # first step after enabling: fresh observer
+    e = -0.2
+    sigma = 10.47 * e / math.sqrt(e * e + 1.0)
+    # γ̄ still from the height above the deck (1.8 + 0.05), not the altitude
+    assert wrench.wrench.force.z == pytest.approx(M / gamma(1.85) * (G - 0.85 * sigma),
+                                                  rel=1e-9)
+    helper.frame = 'ship'
+    assert wait_for(lambda: node.rejected['bad_frame'] >= 5)
+
+
+def test_bad_parameters_are_rejected_with_a_clear_message(ros_context):
+    from deckland_common.params import ParameterError
+    from dob_altitude.node import DobAltitudeNode
+    from rclpy.parameter import Parameter
+    context, _ = ros_context
+    cases = [('controller', 'lqr', 'controller'), ('gamma_obs', 0.0, 'gamma_obs'),
+             ('thrust_max_n', 20.0, 'thrust_max_n'), ('rate_hz', 0.0, 'rate_hz'),
+             ('input_timeout_s', -1.0, 'input_timeout_s')]
+    for name, value, needle in cases:
+        with pytest.raises(ParameterError, match=needle):
+            DobAltitudeNode(context=context,
+                            parameter_overrides=[Parameter(name, value=value)])
+
+
+def test_main_exits_with_status_2_on_a_bad_parameter(capsys):
+    from dob_altitude.node import main
+    assert main(['--ros-args', '-p', 'gains_profile:=fast']) == 2
+    assert 'gains_profile' in capsys.readouterr().err
