@@ -1,0 +1,312 @@
+"""deck_simulator node, ROS-free part: SimulationLoop + AutopilotEmulation over a memory link.
+
+The emulated autopilot is driven the way mavlink_bridge drives PX4 (MAVLink bytes on a
+MemoryLink); the Pixy bytes are parsed with pixy_driver's parser. Assertions are physics
+(hover, Δv = (T − m g)/m · Δt, land speed, image centre under a down-looking camera) and the
+campaign's outcome semantics.
+"""
+
+import json
+import math
+import random
+import timeit
+
+from deck_simulator.node import (
+    AutopilotEmulation,
+    AutopilotParams,
+    SimulationLoop,
+    body_rates,
+    outcome_json,
+    parse_mavlink_url,
+)
+from deck_simulator.px4_emulator import EmulatorParams, MemoryLink, Px4Emulator
+from deck_simulator.scenario import load_scenario, scenario_from_dict
+from deckland_common.frames import rot_body_to_world
+from mavlink_bridge.conversions import set_attitude_target_fields
+from pixy_driver.protocol import PixyParser
+from pymavlink.dialects.v20 import common as mavlink
+import pytest
+
+G = 9.81
+M = 2.71
+
+CALM = {
+    'name': 'calm_test',
+    'timeout_s': 60.0,
+    'start_position_m': [3.0, 3.0, 2.0],
+    'apron': {'position_m': [-3.2, -2.0], 'heave': {'model': 'none'}},
+    'wind': {'mean_mps': [0.0, 0.0], 'gust_std_mps': 0.0},
+    'randomize': {'heave_phase': False, 'gps_bias': False},
+}
+
+
+def calm(**overrides):
+    data = json.loads(json.dumps(CALM))
+    data.update(overrides)
+    return scenario_from_dict(data, 'test')
+
+
+class Rig:
+    """SimulationLoop with the emulator on a MemoryLink; the test plays the companion."""
+
+    def __init__(self, scenario=None, seed=1, params=None):
+        self.link = MemoryLink()
+        self.emu = Px4Emulator(params or EmulatorParams(), transport=self.link.a)
+        self.frames = []
+        self.sim = SimulationLoop(scenario or calm(), seed, self.emu, self.frames.append)
+        self.mav = mavlink.MAVLink(self.link.b, srcSystem=1, srcComponent=191)
+        self.rx = mavlink.MAVLink(None)
+        self.outcomes = []
+
+    def received(self):
+        out = []
+        for data, _ in self.link.b.receive():
+            out += self.rx.parse_buffer(data) or []
+        return out
+
+    def run(self, seconds, setpoint=None, chunk_s=0.02):
+        """Advance in 20 ms chunks; stream ``setpoint`` (roll, pitch, yaw, thrust) meanwhile."""
+        n = round(seconds / chunk_s)
+        for _ in range(n):
+            if setpoint is not None:
+                self.mav.set_attitude_target_send(**set_attitude_target_fields(
+                    *setpoint, self.emu.params.thrust))
+            _, out = self.sim.advance(chunk_s)
+            if out is not None:
+                self.outcomes.append(out)
+
+    def set_mode(self, main, sub=0):
+        self.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, main, sub,
+                                   0, 0, 0, 0)
+
+    def truth(self):
+        return self.sim.world.truth()
+
+
+def test_parse_mavlink_url_pairs_with_pymavlink_syntax():
+    assert parse_mavlink_url('udpout:127.0.0.1:14540') == ('out', '127.0.0.1', 14540)
+    assert parse_mavlink_url('udpin:0.0.0.0:14550') == ('in', '0.0.0.0', 14550)
+    assert parse_mavlink_url('udp:localhost:0') == ('in', '127.0.0.1', 0)
+    for bad in ('tcp:127.0.0.1:5760', 'udpout:127.0.0.1:0', 'udpin:127.0.0.1:70000',
+                'udpout:example.com:14540', '/dev/ttyACM0', ''):
+        with pytest.raises(ValueError):
+            parse_mavlink_url(bad)
+
+
+def test_body_rates_match_rotation_derivative():
+    """ω× = Rᵀ Ṙ for R = Rz(ψ)Ry(θ)Rx(φ) (frames.py) — checked by finite differences."""
+    rng = random.Random(4)
+    for _ in range(20):
+        e = [rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6), rng.uniform(-3.0, 3.0)]
+        de = [rng.uniform(-1.0, 1.0) for _ in range(3)]
+        h = 1e-6
+        r0 = rot_body_to_world(*e)
+        r1 = rot_body_to_world(*(a + h * b for a, b in zip(e, de, strict=True)))
+        rd = [[(r1[i][j] - r0[i][j]) / h for j in range(3)] for i in range(3)]
+        w = [[sum(r0[k][i] * rd[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+        p, q, r = body_rates(e[0], e[1], *de)
+        assert (w[2][1], w[0][2], w[1][0]) == pytest.approx((p, q, r), abs=1e-4)
+
+
+def test_holds_start_hover_without_offboard_in_gusts():
+    """Before OFFBOARD the autopilot emulation holds the (randomised) start of `paper`
+    (0.5 m/s wind, 0.3 m/s gusts): truth within 0.3 m for 20 s, level, nothing rejected."""
+    rig = Rig(load_scenario('paper'), seed=7)
+    p0 = rig.truth().position_m
+    worst = 0.0
+    for _ in range(100):
+        rig.run(0.2)
+        worst = max(worst, math.dist(rig.truth().position_m, p0))
+    tr = rig.truth()
+    assert worst < 0.3
+    assert abs(tr.roll_rad) < 0.1 and abs(tr.pitch_rad) < 0.1
+    assert rig.sim.last_kind == 'hold' and rig.emu.armed and rig.emu.mode == 'POSCTL'
+    assert rig.sim.counters['autopilot_steps'] == pytest.approx(2000, abs=2)
+    assert rig.sim.world.contact is None and rig.outcomes == []
+    assert sum(rig.emu.rejected.values()) == 0 and sum(rig.sim.world.rejected.values()) == 0
+
+
+def test_telemetry_streams_like_px4():
+    rig = Rig()
+    rig.run(2.0)
+    msgs = rig.received()
+    by = {}
+    for m in msgs:
+        by.setdefault(m.get_type(), []).append(m)
+    hb = by['HEARTBEAT'][-1]
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert (hb.custom_mode >> 16) & 0xFF == 3                       # POSCTL
+    assert 95 <= len(by['ATTITUDE']) <= 105                         # 50 Hz default for 2 s
+    tr = rig.truth()
+    lp = by['LOCAL_POSITION_NED'][-1]                               # NED = (y, x, -z) ENU
+    assert (lp.x, lp.y, lp.z) == pytest.approx(
+        (tr.position_m[1], tr.position_m[0], -tr.position_m[2]), abs=0.25)
+    ds = by['DISTANCE_SENSOR'][-1]
+    assert ds.orientation == 25 and abs(ds.current_distance - 100 * tr.position_m[2]) <= 10
+    imu = by['HIGHRES_IMU'][-1]
+    assert imu.zacc == pytest.approx(-G, abs=0.5)                  # FRD specific force in hover
+    assert abs(imu.xacc) < 0.5 and abs(imu.yacc) < 0.5
+    ess = by['EXTENDED_SYS_STATE'][-1]
+    assert ess.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+
+
+def test_pixy_datagrams_show_the_beacon_below_at_the_image_centre():
+    """Hovering over the pad centre, the beacon projects to the principal point (160, 100)
+    with blob size fx·0.08 m / depth, fx = 160 / tan 30°; one datagram per 20 ms frame."""
+    rig = Rig(calm(start_position_m=[-3.2, -2.0, 2.0]))
+    rig.run(2.0)
+    assert len(rig.frames) == pytest.approx(100, abs=1)
+    parser = PixyParser()
+    frames = []
+    for datagram in rig.frames:
+        got = parser.feed_datagram(datagram)
+        assert len(got) == 1
+        frames.append(got[0])
+    seen = [f.blocks[0] for f in frames if f.blocks]
+    assert len(seen) >= 90                                          # 2 % dropout
+    depth = rig.truth().position_m[2] - 0.60
+    w_expected = (160 / math.tan(math.radians(30))) * 0.08 / depth
+    for b in seen[-20:]:
+        assert abs(b.x_px - 160) <= 4 and abs(b.y_px - 100) <= 4
+        assert abs(b.width_px - w_expected) <= 1.5
+    assert parser.checksum_errors == 0
+
+
+def test_offboard_setpoints_fly_the_vehicle_then_failsafe_lands_straight_down():
+    rig = Rig()
+    hover = (0.0, 0.0, 0.0, M * G)
+    rig.run(1.3, setpoint=hover)                                    # warm-up > 1 s at 50 Hz
+    rig.set_mode(6)
+    rig.run(0.2, setpoint=hover)
+    assert rig.emu.mode == 'OFFBOARD' and rig.sim.last_kind == 'offboard'
+    # (3) with γ ≈ 1: thrust 1.2 m g level → z̈ = +0.2 g, then 0.8 m g → −0.2 g
+    v0 = rig.truth().velocity_mps[2]
+    rig.run(0.5, setpoint=(0.0, 0.0, 0.0, 1.2 * M * G))
+    dv = rig.truth().velocity_mps[2] - v0
+    assert 0.2 * G * 0.5 * 0.8 < dv < 0.2 * G * 0.5 * 1.05          # motor lag 40 ms
+    rig.run(0.5, setpoint=(0.0, 0.0, 0.0, 0.8 * M * G))
+    assert abs(rig.truth().velocity_mps[2] - v0) < 0.15
+    rig.run(0.2, setpoint=hover)
+    # setpoints stop: after COM_OF_LOSS_T = 1 s the emulator lands (failsafe)
+    xy0 = rig.truth().position_m[:2]
+    rig.run(1.1)
+    assert rig.emu.failsafe_active and rig.sim.last_kind == 'failsafe_land'
+    rig.run(1.5)
+    assert rig.truth().velocity_mps[2] == pytest.approx(-0.7, abs=0.12)   # MPC_LAND_SPEED
+    for _ in range(60):
+        rig.run(0.1)
+        if rig.outcomes:
+            break
+    assert len(rig.outcomes) == 1
+    out = rig.outcomes[0]
+    c = rig.sim.world.contact
+    assert c.kind == 'ground' and math.dist(c.position_m[:2], xy0) < 0.3
+    assert out['contact_kind'] == 'ground' and out['fallback'] and not out['success']
+    assert not out['crash'] and out['touchdown_speed_mps'] == pytest.approx(0.7, abs=0.15)
+    assert out['time_to_land_s'] is None                            # no landing trigger seen
+    # land detector → auto-disarm after 2 s → motors idle; the outcome is not repeated
+    rig.run(3.0)
+    assert not rig.emu.armed and rig.sim.last_kind == 'idle' and len(rig.outcomes) == 1
+
+
+def test_outcome_on_the_pad_counts_trigger_and_searches():
+    """AUTO.LAND over the pad centre: 'pad' contact, success, and time_to_land_s measured from
+    the first planner mode outside IDLE/HOLD/TAKEOFF; SEARCH entries counted."""
+    rig = Rig(calm(start_position_m=[-3.2, -2.0, 2.0]))
+    rig.sim.on_planner_mode('IDLE')
+    rig.run(0.5)
+    rig.sim.on_planner_mode('TAKEOFF')
+    rig.sim.on_planner_mode('HOLD')
+    rig.run(0.5)
+    rig.sim.on_planner_mode('APPROACH')
+    t_trigger = rig.sim.world.t_s
+    for mode in ('SEARCH', 'SEARCH', 'ALIGN', 'SEARCH', 'DESCEND', 'bogus'):
+        rig.sim.on_planner_mode(mode)
+    rig.sim.on_planner_mode('')
+    rig.sim.on_planner_mode(None)
+    assert rig.sim.rejected['bad_mode'] == 2
+    rig.set_mode(4, 6)                                               # AUTO.LAND
+    for _ in range(60):
+        rig.run(0.1)
+        if rig.outcomes:
+            break
+    out = json.loads(outcome_json(rig.outcomes[0]))
+    c = rig.sim.world.contact
+    assert out['contact_kind'] == 'pad' and out['landed_on_deck'] and out['success']
+    assert out['time_to_land_s'] == pytest.approx(c.t_s - t_trigger, abs=1e-9)
+    assert out['time_to_land_s'] > 1.0                             # 1.4 m at 0.7 m/s
+    assert out['searches'] == 2 and out['final_mode'] == 'BOGUS'
+    assert out['max_thrust_n'] >= M * G * 0.99
+    assert out['horizontal_error_m'] < 0.1 and out['seed'] == 1
+    assert out['scenario'] == 'calm_test'
+    for key in ('seed', 'scenario', 'landed_on_deck', 'success', 'crash', 'fallback',
+                'contact_kind', 'horizontal_error_m', 'touchdown_speed_mps', 'time_to_land_s',
+                'searches', 'max_thrust_n', 'reason'):
+        assert key in out
+
+
+def test_timeout_outcome_counts_from_the_trigger():
+    rig = Rig(calm(timeout_s=1.0))
+    rig.run(0.6)
+    rig.sim.on_planner_mode('APPROACH')                             # deadline 0.6 + 1.0 s
+    rig.run(0.9)
+    assert rig.outcomes == []
+    rig.run(0.2)
+    assert len(rig.outcomes) == 1
+    out = rig.outcomes[0]
+    assert out['reason'] == 'timeout' and not out['success'] and out['contact_kind'] == 'none'
+    assert out['sim_time_s'] == pytest.approx(1.6, abs=0.01)
+    assert out['horizontal_error_m'] is None and out['time_to_land_s'] is None
+    rig.run(1.0)
+    assert len(rig.outcomes) == 1
+    # strict JSON (no NaN tokens)
+    json.loads(outcome_json(out), parse_constant=lambda s: pytest.fail(f'non-JSON {s}'))
+
+
+def test_garbage_and_nan_from_the_wire_are_rejected_and_hover_continues():
+    rig = Rig()
+    rig.run(0.5)
+    p0 = rig.truth().position_m
+    rng = random.Random(11)
+    nan_q = [math.nan, 0.0, 0.0, 0.0]
+    for _ in range(50):
+        rig.link.b.send(bytes(rng.randrange(256) for _ in range(rng.randrange(1, 80))))
+        rig.link.b.send(b'\xfd' + bytes(20))                          # truncated MAVLink 2
+        rig.mav.set_attitude_target_send(0, 1, 1, 0, nan_q, 0.0, 0.0, 0.0, 0.5)
+        rig.mav.set_attitude_target_send(0, 1, 1, 0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                         math.nan)
+        rig.run(0.04)
+    assert rig.emu.rejected['nan'] >= 50 and rig.emu.rejected['bad_data'] >= 50
+    assert rig.emu.counters['setpoints_rx'] == 0 and rig.sim.last_kind == 'hold'
+    assert sum(rig.sim.world.rejected.values()) == 0
+    assert math.dist(rig.truth().position_m, p0) < 0.1
+    rig.sim.advance(math.nan)
+    rig.sim.advance(-1.0)
+    assert rig.sim.rejected['bad_dt'] == 2
+
+
+def test_autopilot_emulation_reenters_hold_at_the_current_position():
+    ap = AutopilotEmulation(AutopilotParams.for_scenario(calm()))
+    rig = Rig()
+    tr = rig.truth()
+    ap.command('hold', tr, 0.01)
+    assert ap.target_m == tr.position_m
+    ap.release()
+    rig.run(0.5)
+    tr2 = rig.truth()
+    ap.command('hold', tr2, 0.01)
+    assert ap.target_m == tr2.position_m
+    assert ap.command('idle', tr2, 0.01)[3] == 0.0
+    with pytest.raises(ValueError, match='land_speed_mps'):
+        AutopilotParams(land_speed_mps=-1.0)
+
+
+def test_step_cost_is_small():
+    """Cost of one 10 ms tick (4 physics sub-steps + telemetry/camera/control); printed."""
+    rig = Rig(load_scenario('paper'), seed=2)
+    rig.run(0.5)
+    n = 300
+    s = timeit.timeit(lambda: rig.sim.advance(0.01), number=n)
+    per_substep_us = s / (4 * n) * 1e6
+    print(f'SimulationLoop: {per_substep_us:.1f} us per 1/400 s sub-step')
+    assert per_substep_us < 250.0                                   # real time needs < 2500

@@ -1,0 +1,207 @@
+"""deck_simulator node in-process (private rclpy context) and as a process (SIGINT)."""
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytestmark = pytest.mark.ros
+
+
+def free_udp_port():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def wait_for(pred, timeout_s=5.0):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def make_node(context, **params):
+    from deck_simulator.node import DeckSimulatorNode
+    from rclpy.parameter import Parameter
+    return DeckSimulatorNode(context=context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in params.items()])
+
+
+@pytest.fixture
+def sim(ros_context, tmp_path):
+    """The node on free ports: a pymavlink 'udpin' endpoint (as the bridge's default) and a
+    bound UDP socket standing in for pixy_driver."""
+    from pymavlink import mavutil
+    from rclpy.node import Node
+
+    context, executor = ros_context
+    mav_port, pixy = free_udp_port(), socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    pixy.bind(('127.0.0.1', 0))
+    pixy.settimeout(0.5)
+    scenario = tmp_path / 'short.yaml'
+    scenario.write_text(
+        'name: short\ntimeout_s: 6.0\nstart_position_m: [1.0, 2.0, 2.0]\n'
+        'wind: {mean_mps: [0.3, 0.0], gust_std_mps: 0.2}\n'
+        'randomize: {start_offset_m: 0.3, start_yaw_rad: 0.3}\n', encoding='utf-8')
+    node = make_node(context, scenario=str(scenario), seed=5,
+                     mavlink_url=f'udpout:127.0.0.1:{mav_port}',
+                     pixy_udp_port=pixy.getsockname()[1])
+    conn = mavutil.mavlink_connection(f'udpin:127.0.0.1:{mav_port}', dialect='common',
+                                      source_system=1, source_component=191)
+    helper = Node('simnode_test_helper', context=context)
+    executor.add_node(node)
+    executor.add_node(helper)
+    try:
+        yield node, helper, conn, pixy
+    finally:
+        conn.close()
+        pixy.close()
+
+
+def collect(helper, cls, topic, qos):
+    got = []
+    helper.create_subscription(cls, topic, got.append, qos)
+    return got
+
+
+def test_truth_pixy_mavlink_hold_and_timeout_outcome(sim):
+    from deckland_common.frames import quaternion_to_euler
+    from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
+    from nav_msgs.msg import Odometry
+    from pixy_driver.protocol import PixyParser
+    from std_msgs.msg import String
+
+    node, helper, conn, pixy = sim
+    vehicle = collect(helper, Odometry, 'sim/truth/vehicle', RELIABLE_QOS)
+    apron = collect(helper, Odometry, 'sim/truth/apron', RELIABLE_QOS)
+    mode_pub = helper.create_publisher(String, 'planner/mode', LATCHED_QOS)
+    assert wait_for(lambda: len(vehicle) > 5 and len(apron) > 5, 10.0)
+
+    # MAVLink telemetry at the 'udpin' endpoint, PX4 style (NED)
+    hb = conn.recv_match(type='HEARTBEAT', blocking=True, timeout=3.0)
+    assert hb is not None and hb.autopilot == 12 and (hb.custom_mode >> 16) & 0xFF == 3
+    att = conn.recv_match(type='ATTITUDE', blocking=True, timeout=2.0)
+    assert att is not None and abs(att.roll) < 0.2 and abs(att.pitch) < 0.2
+    lp = conn.recv_match(type='LOCAL_POSITION_NED', blocking=True, timeout=2.0)
+    assert lp is not None and lp.z == pytest.approx(-2.0, abs=1.0)
+
+    # Pixy datagrams: one frame each, parsed by pixy_driver's parser
+    parser = PixyParser()
+    frames = []
+    end = time.monotonic() + 2.0
+    while len(frames) < 20 and time.monotonic() < end:
+        try:
+            data, _ = pixy.recvfrom(65536)
+        except TimeoutError:
+            continue
+        frames += parser.feed_datagram(data)
+    assert len(frames) >= 20 and parser.checksum_errors == 0
+
+    # no offboard setpoints: the vehicle holds its start (truth) for a few seconds
+    first = vehicle[0].pose.pose.position
+    p0 = (first.x, first.y, first.z)
+    assert math.dist(p0[:2], (1.0, 2.0)) <= 0.31 and p0[2] == pytest.approx(2.0, abs=0.05)
+    seen = len(vehicle)
+    mode_pub.publish(String(data='APPROACH'))                       # the landing trigger
+    time.sleep(3.0)
+    worst = max(math.dist(p0, (m.pose.pose.position.x, m.pose.pose.position.y,
+                               m.pose.pose.position.z)) for m in vehicle[seen:])
+    assert worst < 0.3
+    rate = (len(vehicle) - seen) / 3.0
+    assert 40.0 <= rate <= 55.0                                      # truth_rate_hz 50
+    last = vehicle[-1]
+    assert last.header.frame_id == 'map' and last.child_frame_id == 'base_link'
+    q = last.pose.pose.orientation
+    roll, pitch, _ = quaternion_to_euler(q.w, q.x, q.y, q.z)
+    assert abs(roll) < 0.1 and abs(pitch) < 0.1
+    stamp = last.header.stamp.sec + last.header.stamp.nanosec * 1e-9
+    assert abs(stamp - time.time()) < 0.5                            # wall-clock stamps
+    a = apron[-1]
+    assert (a.pose.pose.position.x, a.pose.pose.position.y) == pytest.approx((-3.2, -2.0))
+    assert 0.4 < a.pose.pose.position.z < 0.8                         # deck top (Table 3)
+
+    # timeout (6 s after the trigger): latched outcome, seen by a late subscriber too
+    assert wait_for(lambda: node.sim.outcome is not None, 8.0)
+    late = collect(helper, String, 'sim/outcome', LATCHED_QOS)
+    assert wait_for(lambda: late, 3.0)
+    out = json.loads(late[0].data)
+    assert out['reason'] == 'timeout' and out['success'] is False and out['seed'] == 5
+    assert out['scenario'] == 'short' and out['final_mode'] == 'APPROACH'
+    assert out['sim_time_s'] >= 6.0
+    assert node.thread_errors == 0
+
+
+def test_garbage_on_the_mavlink_port_is_counted_not_fatal(sim):
+    node, _helper, conn, _pixy = sim
+    assert conn.recv_match(type='HEARTBEAT', blocking=True, timeout=3.0) is not None
+    # conn learned the emulator's address; send junk and a NaN setpoint back to it
+    for i in range(20):
+        conn.write(bytes([0xFD, 9, 0, 0, i, 1, 1]) + os.urandom(10))
+        conn.mav.set_attitude_target_send(0, 1, 1, 0, [math.nan, 0, 0, 0], 0, 0, 0, 0.5)
+    assert wait_for(lambda: node.emulator.rejected['nan'] >= 20, 3.0)
+    assert node.emulator.rejected['bad_data'] >= 1
+    assert node._thread.is_alive() and node.thread_errors == 0
+    assert node.sim.last_kind == 'hold'
+
+
+@pytest.mark.parametrize('params, needle', [
+    ({'scenario': 'no_such_scenario'}, "parameter 'scenario'"),
+    ({'realtime_factor': -1.0}, "'realtime_factor'"),
+    ({'physics_rate_hz': 100.0}, "'physics_rate_hz'"),
+    ({'mavlink_url': 'tcp:127.0.0.1:5760'}, "'mavlink_url'"),
+    ({'pixy_udp_port': 0}, "'pixy_udp_port'"),
+    ({'seed': 'one'}, "'seed'"),
+])
+def test_bad_parameters_are_rejected_with_a_clear_message(ros_context, params, needle):
+    from deckland_common.params import ParameterError
+    context, _ = ros_context
+    with pytest.raises(ParameterError, match=needle):
+        make_node(context, **params)
+
+
+def test_busy_mavlink_port_is_a_clear_error(ros_context):
+    from deckland_common.params import ParameterError
+    context, _ = ros_context
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:
+        busy.bind(('127.0.0.1', 0))
+        port = busy.getsockname()[1]
+        with pytest.raises(ParameterError, match='cannot open the socket'):
+            make_node(context, mavlink_url=f'udpin:127.0.0.1:{port}')
+
+
+def test_process_exits_within_1s_of_sigint_and_rejects_bad_param():
+    env = dict(os.environ)
+    mav, pixy = free_udp_port(), free_udp_port()
+    cmd = [sys.executable, '-m', 'deck_simulator.node', '--ros-args',
+           '-p', 'scenario:=paper_calm', '-p', f'mavlink_url:=udpout:127.0.0.1:{mav}',
+           '-p', f'pixy_udp_port:={pixy}']
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as listen:
+        listen.bind(('127.0.0.1', mav))
+        listen.settimeout(15.0)
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        try:
+            listen.recvfrom(65536)                                   # it is running
+            time.sleep(0.3)
+            t0 = time.monotonic()
+            proc.send_signal(signal.SIGINT)
+            rc = proc.wait(timeout=5.0)
+            took = time.monotonic() - t0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            proc.stdout.close()
+            proc.stderr.close()
+    assert rc == 0 and took < 1.0
+    bad = subprocess.run([*cmd[:4], '-p', 'realtime_factor:=0.0'], env=env,
+                         capture_output=True, text=True, timeout=30)
+    assert bad.returncode == 2 and "parameter 'realtime_factor'" in bad.stderr
