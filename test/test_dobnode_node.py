@@ -217,13 +217,15 @@ def test_nan_and_malformed_apron_state_rejected_never_published(ros_context):
 
     def mixed(data):
         count['n'] += 1
-        k = count['n'] % 4
+        k = count['n'] % 5
         if k == 1:
             data[20] = math.nan
         elif k == 2:
             data = data[:-1]
         elif k == 3:
             data[21] = math.inf
+        elif k == 4:
+            data[27] = -math.inf  # surface_epoch: cannot become an int
         return data
 
     helper.corrupt = mixed

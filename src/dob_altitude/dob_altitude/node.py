@@ -196,6 +196,9 @@ class DobAltitudeNode(Node):
         except ValueError as exc:
             self._reject('non_finite' if 'NaN' in str(exc) else 'bad_size', f'apron/state: {exc}')
             return
+        except OverflowError:  # an infinite surface_epoch cannot be rounded to an int
+            self._reject('non_finite', 'apron/state (surface_epoch)')
+            return
         v = state.vertical
         if not all_finite(state.t_s, v.height_m, v.closing_speed_mps, v.vehicle_altitude_m,
                           v.vehicle_vz_mps, v.surface_accel_mps2):
