@@ -87,7 +87,7 @@ def test_approach_to_align_when_target_tracked_near_the_area():
     d.p.start_landing(0.0)
     d.run(1.0)
     assert d.out.mode is Mode.APPROACH
-    d.beacon = (3.0, 0.0)                      # tracked but 3 m from the area (> 2.5 m)
+    d.beacon = (3.5, 0.0)                      # tracked but 3.5 m from the area (> 3 m)
     d.run(1.0)
     assert d.out.mode is Mode.APPROACH
     d.beacon = (0.3, -0.2)

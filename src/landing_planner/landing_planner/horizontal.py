@@ -32,9 +32,9 @@ from deckland_common.frames import world_to_body_xy
 class HorizontalParams:
     """Gains and limits of :class:`HorizontalController` (SI units)."""
 
-    kp: float = 1.2             # 1/s²  position error → acceleration
-    kd: float = 1.8             # 1/s   velocity error → acceleration
-    ki: float = 0.05            # 1/s³  integral of the position error → acceleration
+    kp: float = 3.0             # 1/s²  position error → acceleration
+    kd: float = 3.0             # 1/s   velocity error → acceleration
+    ki: float = 0.8             # 1/s³  integral of the position error → acceleration
     max_accel_mps2: float = 3.0
     max_tilt_rad: float = math.radians(20.0)
     max_integral_accel_mps2: float = 1.0   # clamp of |k_i ∫e| (each axis)

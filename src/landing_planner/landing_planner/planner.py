@@ -49,7 +49,7 @@ class PlannerParams:
     """Parameters of :class:`LandingPlanner` (SI units, validated at construction)."""
 
     landing_area_m: tuple[float, float] = (0.0, 0.0)   # where the apron should be (ENU)
-    max_xy_dist_m: float = 2.5          # accept a target only this close to the area
+    max_xy_dist_m: float = 3.0          # accept a target only this close to the area
     acceptance_radius_m: float = 0.15   # horizontally close (paper section 4.2: 0.15 m)
     acceptance_hold_s: float = 0.5      # ... for this long before descending
     acceptance_hysteresis: float = 1.5  # leave the radius × this → pause and re-align
