@@ -205,3 +205,40 @@ def test_process_exits_within_1s_of_sigint_and_rejects_bad_param():
     bad = subprocess.run([*cmd[:4], '-p', 'realtime_factor:=0.0'], env=env,
                          capture_output=True, text=True, timeout=30)
     assert bad.returncode == 2 and "parameter 'realtime_factor'" in bad.stderr
+
+
+@pytest.mark.parametrize('bridge_scheme, sim_scheme', [('udpin', 'udpout'), ('udpout', 'udpin')])
+def test_real_bridge_and_pixy_driver_talk_to_the_simulator(ros_context, bridge_scheme,
+                                                           sim_scheme):
+    """Both pairings on one port: the bridge's default 'udpin' with ours 'udpout' (PX4 SITL
+    style), and `deckland up`'s bridge 'udpout' with ours 'udpin'."""
+    from deckland_common.ros_node import RELIABLE_QOS
+    from mavlink_bridge.node import MavlinkBridgeNode
+    from nav_msgs.msg import Odometry
+    from pixy_driver.node import PixyDriverNode
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud, Range
+
+    context, executor = ros_context
+    port, pixy_port = free_udp_port(), free_udp_port()
+    # the listening side first, as in a launch where the order is arbitrary but ports fixed
+    node = make_node(context, scenario='paper_calm', mavlink_url=f'{sim_scheme}:127.0.0.1:{port}',
+                     pixy_udp_port=pixy_port)
+    bridge = MavlinkBridgeNode(context=context, parameter_overrides=[
+        Parameter('connection', value=f'{bridge_scheme}:127.0.0.1:{port}')])
+    pixy = PixyDriverNode(context=context, parameter_overrides=[
+        Parameter('transport', value='udp'), Parameter('udp_port', value=pixy_port)])
+    helper = Node('simnode_pair_helper', context=context)
+    for n in (node, bridge, pixy, helper):
+        executor.add_node(n)
+    odom = collect(helper, Odometry, 'vehicle/odom', RELIABLE_QOS)
+    rng = collect(helper, Range, 'vehicle/range', RELIABLE_QOS)
+    blocks = collect(helper, PointCloud, 'pixy/blocks', RELIABLE_QOS)
+    assert wait_for(lambda: len(odom) > 10 and len(rng) > 5 and len(blocks) > 10, 10.0)
+    assert wait_for(lambda: node.emulator.counters['heartbeats_rx'] >= 1, 3.0)
+    assert wait_for(lambda: (511, 0) in node.emulator.acks, 3.0)      # rates requested
+    x, y, z = node.sim.world.truth().position_m
+    gps = node.sim.world.gps                                         # truth + GPS bias (ENU)
+    p = odom[-1].pose.pose.position
+    assert math.dist((p.x, p.y, p.z), (x + gps.bx, y + gps.by, z + gps.bz)) < 0.3
