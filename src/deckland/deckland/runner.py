@@ -18,9 +18,7 @@ from apron_estimator.estimator import ApronEstimator, EstimatorParams
 from apron_estimator.types import PixyBlock
 from deck_simulator.scenario import Scenario
 from deck_simulator.world import World
-from dob_altitude.dob import DobAltitudeController, DobParams
-from dob_altitude.pid import PidAltitudeController, PidParams
-from dob_altitude.types import AltitudeInput
+from dob_altitude.adapter import altitude_input, make_controller, parse_vertical_frame
 from landing_planner.horizontal import HorizontalController, HorizontalParams
 from landing_planner.planner import LandingPlanner, PlannerParams
 from landing_planner.types import Mode, VehicleState
@@ -39,6 +37,7 @@ class RunConfig:
     camera_hz: int = 50
     settle_after_contact_s: float = 0.5
     record: bool = False
+    surface_accel_ff: bool = False
     dob_overrides: tuple[tuple[str, float], ...] = ()
     pid_overrides: tuple[tuple[str, float], ...] = ()
 
@@ -82,19 +81,8 @@ class RunResult:
 def make_altitude_controller(config: RunConfig):
     """The altitude controller a run uses (the dob_altitude node makes the same choice)."""
     if config.controller == 'dob':
-        params = DobParams.profile(config.gains_profile)
-        if config.dob_overrides:
-            params = _replace(params, config.dob_overrides)
-        return DobAltitudeController(params)
-    params = PidParams.profile(config.gains_profile)
-    if config.pid_overrides:
-        params = _replace(params, config.pid_overrides)
-    return PidAltitudeController(params)
-
-
-def _replace(params, overrides):
-    from dataclasses import replace
-    return replace(params, **dict(overrides))
+        return make_controller('dob', config.gains_profile, dict(config.dob_overrides))
+    return make_controller('pid', config.gains_profile, dict(config.pid_overrides))
 
 
 def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
@@ -119,8 +107,7 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     estimator = ApronEstimator(EstimatorParams())
     planner = LandingPlanner(planner_params_for(scenario, config))
     altitude = make_altitude_controller(config)
-    world_altitude = (PidAltitudeController(PidParams.profile('default'))
-                      if config.controller == 'constant-rate' else None)
+    frame = 'surface'
     horizontal = HorizontalController(HorizontalParams())
 
     result = RunResult(seed=seed, scenario=scenario.name, controller=config.controller)
@@ -166,20 +153,13 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                                                   dt_ctrl)
             # --- dob_altitude ------------------------------------------------------------
             vert = apron.vertical
-            if world_altitude is not None and getattr(out, 'vertical_mode', '') == 'world_rate':
-                ctrl = world_altitude
-                inp = AltitudeInput(
-                    z_m=vert.vehicle_altitude_m, z_dot_mps=vert.vehicle_vz_mps,
-                    z_d_m=out.z_d_m, z_d_dot_mps=out.z_d_dot_mps, z_d_ddot_mps2=out.z_d_ddot_mps2,
-                    roll_rad=roll, pitch_rad=pitch,
-                    rotor_height_m=vert.height_m + 0.05)
-            else:
-                ctrl = altitude
-                inp = AltitudeInput(
-                    z_m=vert.height_m, z_dot_mps=vert.closing_speed_mps,
-                    z_d_m=out.z_d_m, z_d_dot_mps=out.z_d_dot_mps, z_d_ddot_mps2=out.z_d_ddot_mps2,
-                    roll_rad=roll, pitch_rad=pitch, rotor_height_m=vert.height_m + 0.05)
-            alt_out = ctrl.step(inp, dt_ctrl)
+            new_frame = parse_vertical_frame(out.vertical_mode)
+            if new_frame != frame:  # the node resets on a frame switch too
+                altitude.reset()
+                frame = new_frame
+            inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, frame,
+                                 roll, pitch, surface_accel_ff=config.surface_accel_ff)
+            alt_out = altitude.step(inp, dt_ctrl)
             thrust = alt_out.thrust_n if out.thrust_enabled else 0.0
             world.set_command(roll_cmd, pitch_cmd, out.yaw_rad, thrust)
             if config.record:
