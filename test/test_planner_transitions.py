@@ -377,3 +377,16 @@ def test_takeoff_from_landed_climbs_then_holds():
             break
     assert out.mode is Mode.HOLD and out.reason == 'takeoff complete'
     assert zs[0] == pytest.approx(0.15, abs=1e-4) and out.thrust_enabled
+
+
+def test_fast_fly_through_the_contact_band_is_not_landed():
+    d = aligned_driver()
+    d.run(0.6)
+    d.height = 0.4
+    d.run(0.05)
+    d.height, d.closing = 0.18, -0.4            # in the height band but still closing fast
+    d.run(1.0)
+    assert d.out.mode is Mode.FINAL
+    d.closing = -0.25                           # slow: estimator noise on deck is ±0.2 m/s
+    d.run(0.35)
+    assert d.out.mode is Mode.LANDED
