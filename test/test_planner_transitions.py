@@ -390,3 +390,15 @@ def test_fast_fly_through_the_contact_band_is_not_landed():
     d.closing = -0.25                           # slow: estimator noise on deck is ±0.2 m/s
     d.run(0.35)
     assert d.out.mode is Mode.LANDED
+
+
+def test_heading_is_latched_at_start_and_held():
+    p = LandingPlanner(PlannerParams(landing_area_m=AREA))
+    p.start_landing(0.0)
+    apron = make_apron(0.0)
+    out = p.step(0.0, DT, make_vehicle(0.0, yaw=0.7), apron)
+    assert out.yaw_rad == 0.7
+    out = p.step(DT, DT, make_vehicle(DT, yaw=0.9), make_apron(DT))
+    assert out.yaw_rad == 0.7
+    bad = make_vehicle(2 * DT, yaw=math.nan)
+    assert p.step(2 * DT, DT, bad, make_apron(2 * DT)).yaw_rad == 0.7

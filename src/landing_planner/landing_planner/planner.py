@@ -210,6 +210,7 @@ class LandingPlanner:
         if self.mode is Mode.LANDED:
             return False, 'landed: take off first'
         self.searches = 0
+        self._yaw = None            # latch the current heading at the next step
         self._enter(Mode.APPROACH, t_s, 'start_landing requested (Step 1)')
         return True, 'landing started'
 
@@ -226,6 +227,7 @@ class LandingPlanner:
         """Climb to the approach height over the current position, then HOLD."""
         if self.mode not in (Mode.IDLE, Mode.LANDED):
             return False, f'already airborne (mode {self.mode.name})'
+        self._yaw = None
         self._enter(Mode.TAKEOFF, t_s, 'takeoff requested')
         return True, 'taking off'
 
@@ -251,9 +253,9 @@ class LandingPlanner:
         inputs_ok = veh_ok and vert_ok
 
         if self._pos is None:   # nothing known about the vehicle yet
-            return self._emit(t_s, 0.0, 0.0, 0.0, True)
-        if self._yaw is None:
-            self._yaw = vehicle.yaw_rad if veh_ok else 0.0
+            return self._emit(t_s, self._placeholder_height(), 0.0, 0.0, True)
+        if self._yaw is None and veh_ok:
+            self._yaw = float(vehicle.yaw_rad)   # heading held from (re)start on
         if self._sp is None:
             self._sp = (self._pos[0], self._pos[1])
         if not self._zref_ok and self._height is not None:
@@ -387,8 +389,6 @@ class LandingPlanner:
         stop_z = self._zref.stopping_point() if self._zref_ok else p.approach_height_m
         if mode is Mode.APPROACH:
             self._start_path(p.landing_area_m)
-            if self._yaw is None:
-                self._yaw = 0.0
         elif mode is Mode.ALIGN:
             latch.hold_height_m = max(stop_z, p.final_approach_height_m)
             self._path_active = False
@@ -617,11 +617,18 @@ class LandingPlanner:
             thrust = self.mode is not Mode.LANDED and self.mode is not Mode.IDLE
         out = PlannerOutput(
             t_s=t_s, mode=self.mode, setpoint_m=(float(sp[0]), float(sp[1])),
-            velocity_ff_mps=self._ff, yaw_rad=self._yaw if self._yaw is not None else 0.0,
+            velocity_ff_mps=self._ff, yaw_rad=self._yaw_out(),
             z_d_m=z, z_d_dot_mps=zd, z_d_ddot_mps2=zdd, thrust_enabled=thrust,
             searches=self.searches, reason=self.reason, vertical_mode=self._vframe)
         self._last_out = out
         return out
+
+    def _yaw_out(self) -> float:
+        if self._yaw is not None:
+            return self._yaw
+        if self._last_out is not None:
+            return self._last_out.yaw_rad
+        return 0.0
 
     def _hold_output(self, t_s: float) -> PlannerOutput:
         """Answer to a rejected call: the last output (or a neutral one), state unchanged."""
