@@ -7,8 +7,8 @@ are checked, and every error message carries the source and the key path, e.g.
 
 The ``vehicle`` and ``sensors`` sections override fields of
 :class:`deck_simulator.vehicle.VehicleParams` and :class:`deck_simulator.sensors.SensorParams`
-(same names). ``faults`` is reserved for fault injection (a later issue): only ``[]`` is
-accepted now.
+(same names). ``faults`` is a list of fault entries ``{type: ..., start_s: .., end_s: .., ...}``
+validated by :func:`deck_simulator.faults.parse_faults` (see that module and the README).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from typing import Any
 
 import yaml
 
+from deck_simulator.faults import FaultSpec, parse_faults
 from deck_simulator.sensors import SensorParams
 from deck_simulator.vehicle import VehicleParams
 
@@ -135,7 +136,7 @@ class Scenario:
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     sensors: SensorParams = field(default_factory=SensorParams)
     randomize: RandomizeSpec = field(default_factory=RandomizeSpec)
-    faults: tuple = ()
+    faults: tuple[FaultSpec, ...] = ()   # entries may be given as mappings (parsed here)
     crash_speed_mps: float = 1.0
     max_tilt_rad: float = 0.35
 
@@ -143,8 +144,7 @@ class Scenario:
         _req(self.timeout_s > 0, 'timeout_s', 'must be > 0', self.timeout_s)
         _req(self.start_position_m[2] > 0, 'start_position_m', 'must have z > 0',
              self.start_position_m)
-        _req(self.faults == (), 'faults', 'fault injection is not implemented yet; use []',
-             self.faults)
+        object.__setattr__(self, 'faults', parse_faults(self.faults))
         _req(self.crash_speed_mps > 0, 'crash_speed_mps', 'must be > 0', self.crash_speed_mps)
         _req(0 < self.max_tilt_rad < math.pi / 2, 'max_tilt_rad', 'must be in (0, π/2)',
              self.max_tilt_rad)
@@ -174,6 +174,8 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
         if not isinstance(value, str):
             raise ValueError(f'{path} must be a string, got {value!r}')
         return value
+    if path == 'faults':
+        return parse_faults(value)
     if tp is tuple or origin is tuple:
         if not isinstance(value, list | tuple):
             raise ValueError(f'{path} must be a list, got {value!r}')

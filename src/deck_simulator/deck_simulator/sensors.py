@@ -236,7 +236,10 @@ class Camera:
         self.last_t: float | None = None
 
     def frame(self, t_s: float, cam_position_m: tuple[float, float, float],
-              r_body_to_world: Mat3, beacon_m: tuple[float, float, float]) -> list[Block]:
+              r_body_to_world: Mat3, beacon_m: tuple[float, float, float],
+              show_beacon: bool = True) -> list[Block]:
+        """One frame exposed at t_s. ``show_beacon=False`` (occlusion fault) draws the same
+        random numbers but leaves the beacon out, so the noise streams stay aligned."""
         p = self.params
         rng = self.rng
         blocks: list[Block] = []
@@ -249,7 +252,7 @@ class Camera:
             u = self._cx + self._fx * xo / zo + rng.gauss(0.0, p.pixel_noise_px)
             v = self._cy + self._fy * yo / zo + rng.gauss(0.0, p.pixel_noise_px)
             ui, vi = round(u), round(v)
-            if 0 <= ui < p.width_px and 0 <= vi < p.height_px:
+            if show_beacon and 0 <= ui < p.width_px and 0 <= vi < p.height_px:
                 w = max(1, round(self._fx * p.beacon_size_m / zo))
                 h = max(1, round(self._fy * p.beacon_size_m / zo))
                 blocks.append((p.signature, ui, vi, w, h))
@@ -274,6 +277,25 @@ class Camera:
                 blocks.sort(key=lambda b: -b[3] * b[4])   # Pixy sends the largest first
         self.last_t = t_s
         return blocks
+
+    def project_blob(self, cam_position_m: tuple[float, float, float], r_body_to_world: Mat3,
+                     point_m: tuple[float, float, float], size_m: float,
+                     rng: random.Random) -> Block | None:
+        """A blob of world size ``size_m`` at a world point (false-blob faults), with the
+        camera's pixel noise drawn from ``rng``; None outside the image, range or behind."""
+        p = self.params
+        d0 = point_m[0] - cam_position_m[0]
+        d1 = point_m[1] - cam_position_m[1]
+        d2 = point_m[2] - cam_position_m[2]
+        xo, yo, zo = _to_optical(self._c, r_body_to_world, d0, d1, d2)
+        if zo <= 1e-3 or d0 * d0 + d1 * d1 + d2 * d2 > p.max_range_m ** 2:
+            return None
+        ui = round(self._cx + self._fx * xo / zo + rng.gauss(0.0, p.pixel_noise_px))
+        vi = round(self._cy + self._fy * yo / zo + rng.gauss(0.0, p.pixel_noise_px))
+        if not (0 <= ui < p.width_px and 0 <= vi < p.height_px):
+            return None
+        return (p.signature, ui, vi, max(1, round(self._fx * size_m / zo)),
+                max(1, round(self._fy * size_m / zo)))
 
 
 class Lidar:

@@ -20,18 +20,24 @@ contact is recorded in :attr:`World.contact`.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 import math
 import random
 
-from deckland_common.frames import rot_body_to_world
+from deckland_common.frames import rot_body_to_world, world_to_body_xy
 
 from deck_simulator.deck import Deck, make_heave
+from deck_simulator.faults import FaultSet
 from deck_simulator.scenario import Scenario
 from deck_simulator.sensors import Block, Camera, Gps, Imu, Lidar, lidar_true_range
 from deck_simulator.vehicle import Vehicle
 
 LIFTOFF_MARGIN_MPS2 = 0.2
+# offboard-loss failsafe (command_link): PX4-like hold, then land at MPC_LAND_SPEED
+FAILSAFE_PERIOD_S = 0.01
+FAILSAFE_LAND_SPEED_MPS = 0.7
+FAILSAFE_MAX_TILT_RAD = 0.3
 GUST_UPDATE_S = 0.01 - 1e-9   # gusts (τ ~ s) are held over 10 ms
 
 
@@ -114,7 +120,8 @@ class World:
         mean_h = sc.apron.mean_height_m + setup.uniform(-rz.mean_height_m, rz.mean_height_m)
         heave = make_heave(sc.apron.heave, stream('heave'), sc.timeout_s + 60.0,
                            random_phase=rz.heave_phase)
-        self.deck = Deck(sc.apron.position_m, sc.apron.size_m, max(0.0, mean_h), heave,
+        self.deck_mean_m = max(0.0, mean_h)
+        self.deck = Deck(sc.apron.position_m, sc.apron.size_m, self.deck_mean_m, heave,
                          sc.apron.drift_velocity_mps)
 
         vp = sc.vehicle
@@ -146,6 +153,19 @@ class World:
         self.max_thrust_n = self.vehicle.thrust_n
         self.rejected: dict[str, int] = {'nan': 0, 'bad_dt': 0}
 
+        # fault injection (deck_simulator.faults): nothing at all without faults
+        cx0, cy0, _, _, _ = self.deck.state(0.0)
+        self.faults: FaultSet | None = (FaultSet(sc.faults, seed, (cx0, cy0), self.deck_mean_m)
+                                        if sc.faults else None)
+        self.failsafe: str | None = None       # None | 'hold' | 'land' (command_link only)
+        self.link_stats: dict[str, int] = {'sent': 0, 'lost': 0, 'delayed': 0, 'failsafes': 0}
+        self._link_used = False
+        self._last_rx_t = 0.0
+        self._queue: deque = deque()
+        self._fs_t0 = 0.0
+        self._fs_next = 0.0
+        self._fs_ref = (0.0, 0.0, 0.0, 0.0)
+
     # --- commands and stepping -------------------------------------------------------------
 
     def set_command(self, roll_rad: float, pitch_rad: float, yaw_rad: float,
@@ -158,6 +178,109 @@ class World:
         v = self.vehicle
         v.cmd_roll, v.cmd_pitch, v.cmd_yaw = roll_rad, pitch_rad, yaw_rad
         v.cmd_thrust = thrust_n if thrust_n > 0.0 else 0.0
+
+    def command_link(self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float,
+                     thrust_n: float) -> bool:
+        """Send a command over the emulated MAVLink link; True if it gets through.
+
+        Without link faults this is :meth:`set_command`. With ``mavlink_loss`` /
+        ``mavlink_latency`` / ``mavlink_link_loss`` / ``node_kill`` faults a command sent at
+        ``t_s`` may be lost (False; the vehicle keeps the previous command) or queued and
+        applied ``latency_s`` later (FIFO, never reordered). When no command has been applied
+        for ``loss_timeout_s`` (PX4 COM_OF_LOSS_T, 1 s) the world's autopilot takes over
+        (:attr:`failsafe` = ``'hold'``: hold the position, altitude and heading of that moment
+        with a simple controller on truth; after ``hold_s`` more, ``'land'``: descend at
+        0.7 m/s, zero thrust once on a surface). The next command that arrives ends the
+        failsafe (the bridge re-engages offboard). Monitoring starts with the first call.
+        """
+        fs = self.faults
+        if fs is None or not fs.has_link:
+            before = self.rejected['nan']
+            self.set_command(roll_rad, pitch_rad, yaw_rad, thrust_n)
+            return self.rejected['nan'] == before
+        if not (math.isfinite(t_s) and math.isfinite(roll_rad) and math.isfinite(pitch_rad)
+                and math.isfinite(yaw_rad) and math.isfinite(thrust_n)):
+            self.rejected['nan'] += 1
+            return False
+        if not self._link_used:
+            self._link_used = True
+            self._last_rx_t = t_s
+        self.link_stats['sent'] += 1
+        delay = fs.link_fate(t_s)
+        cmd = (roll_rad, pitch_rad, yaw_rad, thrust_n)
+        if delay is None:
+            self.link_stats['lost'] += 1
+            return False
+        if delay > 0.0 or self._queue:
+            self.link_stats['delayed'] += delay > 0.0
+            self._queue.append((t_s + delay, cmd))
+            return True
+        self._deliver(t_s, cmd)
+        return True
+
+    def _deliver(self, t_s: float, cmd: tuple[float, float, float, float]) -> None:
+        self.failsafe = None
+        self._last_rx_t = t_s
+        self.set_command(*cmd)
+
+    def _link_tick(self, t: float) -> None:
+        """Per sub-step: deliver due commands, run the offboard-loss failsafe."""
+        q = self._queue
+        while q and q[0][0] <= t + 1e-12:
+            due, cmd = q.popleft()
+            self._deliver(due, cmd)
+        fs = self.faults
+        if self.failsafe is None:
+            if t - self._last_rx_t <= fs.loss_timeout_s:   # type: ignore[union-attr]
+                return
+            v = self.vehicle
+            self.failsafe = 'hold'
+            self.link_stats['failsafes'] += 1
+            self._fs_t0 = t
+            self._fs_next = t
+            self._fs_ref = (v.x, v.y, v.z, v.yaw)
+        if self.failsafe == 'hold' and t - self._fs_t0 >= fs.hold_s:   # type: ignore
+            self.failsafe = 'land'
+        if t >= self._fs_next - 1e-12:
+            self._fs_next = t + FAILSAFE_PERIOD_S
+            self._failsafe_command()
+
+    def _failsafe_command(self) -> None:
+        """PX4-like position hold / land on truth: PD on position → tilt, (3) inverted for
+        thrust u_z = m (g + a_z) / (γ cφ cθ) with the true γ of (4)."""
+        v = self.vehicle
+        p = self.params
+        g = p.gravity_mps2
+        x0, y0, z0, yaw0 = self._fs_ref
+        ax = 1.0 * (x0 - v.x) - 1.8 * v.vx
+        ay = 1.0 * (y0 - v.y) - 1.8 * v.vy
+        a_max = g * math.tan(FAILSAFE_MAX_TILT_RAD)
+        n = math.hypot(ax, ay)
+        if n > a_max:
+            ax, ay = ax * a_max / n, ay * a_max / n
+        fwd, left = world_to_body_xy(ax, ay, v.yaw)
+        pitch = math.atan2(fwd, g)
+        roll = -math.atan2(left, g)
+        if self.failsafe == 'hold':
+            az = 2.0 * (z0 - v.z) - 2.5 * v.vz
+        else:
+            az = 2.0 * (-FAILSAFE_LAND_SPEED_MPS - v.vz)
+        az = max(-0.5 * g, min(0.5 * g, az))
+        cx, cy, ztop, _, _ = self.deck.state(self.t_s)
+        over = abs(v.x - cx) <= self.deck.half_x and abs(v.y - cy) <= self.deck.half_y
+        surface = ztop if over and v.z > ztop else 0.0
+        gamma = p.gamma(v.z + p.rotor_height_m - surface)
+        thrust = p.mass_kg * (g + az) / (gamma * math.cos(roll) * math.cos(pitch))
+        if self.failsafe == 'land' and self.resting_on is not None:
+            thrust = 0.0
+        v.cmd_roll, v.cmd_pitch, v.cmd_yaw = roll, pitch, yaw0
+        v.cmd_thrust = thrust
+
+    def active_faults(self, t_s: float | None = None) -> tuple[str, ...]:
+        """Types of the scenario faults active at ``t_s`` (default now), for logging."""
+        if self.faults is None:
+            return ()
+        return self.faults.active(self.t_s if t_s is None else t_s)
 
     def step(self, dt_s: float) -> None:
         """Advance the physics by dt_s, in sub-steps of at most ``physics_dt_s``."""
@@ -182,6 +305,8 @@ class World:
         cx, cy, ztop, dvz, daz = deck.state(t)
         v = self.vehicle
         p = self.params
+        if self._link_used:
+            self._link_tick(self.t_s)
         # wind: mean + OU gusts, updated every GUST_UPDATE_S with the exact discretisation
         # g ← a g + σ √(1−a²) n, a = exp(−Δt/τ) (zero-order hold in between)
         g = self.gust
@@ -203,7 +328,18 @@ class World:
         hx, hy = deck.half_x, deck.half_y
         surface = ztop if (-hx <= ox <= hx and -hy <= oy <= hy and v.z > ztop) else 0.0
         x0, y0 = v.x, v.y
-        v.step(h, surface, self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2])
+        fs = self.faults
+        if fs is None:
+            v.step(h, surface, self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2])
+        else:
+            if fs.pending:
+                fs.update_height(self.t_s, v.z - surface)
+            wx, wy, wz = self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2]
+            if fs.wind:
+                ws = fs.wind_step(self.t_s)
+                if ws is not None:
+                    wx, wy, wz = wx + ws[0], wy + ws[1], wz + ws[2]
+            v.step(h, surface, wx, wy, wz)
         thrust = v.f1 + v.f2 + v.f3 + v.f4
         if thrust > self.max_thrust_n:
             self.max_thrust_n = thrust
@@ -276,7 +412,20 @@ class World:
                v.y - v.vy * lat + r[1][0] * ox + r[1][1] * oy + r[1][2] * oz,
                v.z - v.vz * lat + r[2][0] * ox + r[2][1] * oy + r[2][2] * oz)
         cx, cy, ztop, _, _ = self.deck.state(stamp)
-        return stamp, self.camera.frame(stamp, cam, r, (cx, cy, ztop))
+        fs = self.faults
+        if fs is None or not fs.has_camera:
+            return stamp, self.camera.frame(stamp, cam, r, (cx, cy, ztop))
+        # faults act on the exposure time; the base noise streams are drawn as without them
+        blocks = self.camera.frame(stamp, cam, r, (cx, cy, ztop),
+                                   show_beacon=not fs.beacon_hidden(stamp))
+        if fs.blobs:
+            extra = fs.false_blobs(stamp, self.camera, cam, r, (cx, cy, ztop))
+            if extra:
+                blocks.extend(extra)
+                blocks.sort(key=lambda b: -b[3] * b[4])   # Pixy sends the largest first
+        if fs.dropout and fs.camera_empty(stamp):
+            return stamp, []
+        return stamp, blocks
 
     def true_lidar_range(self) -> float | None:
         v = self.vehicle
@@ -286,13 +435,24 @@ class World:
 
     def read_lidar(self) -> float | None:
         """LidarLite range along body −z (m), None when there is no valid return."""
-        return self.lidar.read(self.true_lidar_range())
+        r = self.lidar.read(self.true_lidar_range())
+        fs = self.faults
+        if fs is not None and fs.has_lidar:
+            lp = self.lidar.params
+            return fs.lidar(self.t_s, r, lp.min_range_m, lp.max_range_m)
+        return r
 
     def read_local_position(self) -> tuple[tuple[float, float, float],
                                            tuple[float, float, float]]:
         """GPS/EKF-like local position and velocity, ENU."""
         v = self.vehicle
-        return self.gps.read(self.t_s, (v.x, v.y, v.z), (v.vx, v.vy, v.vz))
+        pos, vel = self.gps.read(self.t_s, (v.x, v.y, v.z), (v.vx, v.vy, v.vz))
+        fs = self.faults
+        if fs is not None and fs.gps:
+            off = fs.gps_offset(self.t_s)
+            if off is not None:
+                pos = (pos[0] + off[0], pos[1] + off[1], pos[2] + off[2])
+        return pos, vel
 
     def read_attitude(self) -> tuple[float, float, float]:
         v = self.vehicle
@@ -313,6 +473,11 @@ class World:
         over = abs(v.x - cx) <= d.half_x and abs(v.y - cy) <= d.half_y
         surface = ztop if over and v.z > ztop else 0.0
         g = self.gust
+        wind = (self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2])
+        if self.faults is not None and self.faults.wind:
+            ws = self.faults.wind_step(t)
+            if ws is not None:
+                wind = (wind[0] + ws[0], wind[1] + ws[1], wind[2] + ws[2])
         return Truth(
             t_s=t, position_m=(v.x, v.y, v.z), velocity_mps=(v.vx, v.vy, v.vz),
             accel_mps2=(v.ax, v.ay, v.az), roll_rad=v.roll, pitch_rad=v.pitch, yaw_rad=v.yaw,
@@ -322,7 +487,7 @@ class World:
             surface_height_m=surface, height_above_surface_m=v.z - surface,
             gamma=self.params.gamma(v.z + self.params.rotor_height_m - surface),
             thrust_n=v.thrust_n,
-            wind_mps=(self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2]),
+            wind_mps=wind,
             resting_on=self.resting_on)
 
     def outcome(self) -> Outcome:
