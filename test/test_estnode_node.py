@@ -1,0 +1,468 @@
+"""apron_estimator node end to end through topics (private rclpy context, in-process).
+
+A helper node plays the mavlink_bridge (vehicle/imu, vehicle/odom, vehicle/velocity,
+vehicle/range, filled exactly as the bridge fills them) and the pixy_driver (pixy/blocks) at
+50 Hz, and records what the node publishes. Expected relative positions come from the
+pinhole geometry written here independently: a beacon Δx pixels right of the principal point
+and Δy pixels below it, seen from height h by a level down-looking camera whose image top
+points at the nose, lies h·Δx/f_x to the vehicle's right and h·Δy/f_y behind it, with
+f = (size/2) / tan(fov/2) (paper (27)-(30), α = half FOV).
+"""
+
+import math
+import threading
+import time
+
+import pytest
+
+pytestmark = pytest.mark.ros
+
+G = 9.81
+FX = 160.0 / math.tan(math.radians(30.0))   # default 60° full horizontal FOV, 320 px
+FY = 100.0 / math.tan(math.radians(23.5))   # default 47° full vertical FOV, 200 px
+
+
+def wait_for(pred, timeout_s=5.0):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def quat(roll, pitch, yaw):
+    """Z-Y-X Euler → (w, x, y, z), written independently of deckland_common."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
+
+
+class Helper:
+    """Publishes the vehicle and camera topics from a thread; records the node's outputs.
+
+    Assertions never depend on the achieved rates (CI machines are shared and rclpy is slow):
+    they compare stamps, not counts per wall-clock interval.
+    """
+
+    def __init__(self, context, executor, *, yaw=0.0, pixel=(160.0, 100.0), height_m=2.0,
+                 vehicle_xy=(3.0, -1.0)):
+        from deckland_common.ros_node import RELIABLE_QOS
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PointStamped, TwistStamped, Vector3Stamped
+        from nav_msgs.msg import Odometry
+        from rclpy.node import Node
+        from sensor_msgs.msg import ChannelFloat32, Imu, PointCloud, Range
+        from std_msgs.msg import Bool, Float64MultiArray
+
+        self.m = {'Imu': Imu, 'Odometry': Odometry, 'TwistStamped': TwistStamped,
+                  'Range': Range, 'PointCloud': PointCloud, 'ChannelFloat32': ChannelFloat32}
+        self.node = Node('estnode_test_helper', context=context)
+        n = self.node
+        self.pub = {
+            'imu': n.create_publisher(Imu, 'vehicle/imu', RELIABLE_QOS),
+            'odom': n.create_publisher(Odometry, 'vehicle/odom', RELIABLE_QOS),
+            'velocity': n.create_publisher(TwistStamped, 'vehicle/velocity', RELIABLE_QOS),
+            'range': n.create_publisher(Range, 'vehicle/range', RELIABLE_QOS),
+            'blocks': n.create_publisher(PointCloud, 'pixy/blocks', RELIABLE_QOS),
+        }
+        self.lock = threading.Lock()
+        self.rx = {k: [] for k in ('state', 'odom', 'relative', 'relative_velocity', 'visible',
+                                   'diagnostics')}
+        for key, cls, topic in (('state', Float64MultiArray, 'apron/state'),
+                                ('odom', Odometry, 'apron/odom'),
+                                ('relative', PointStamped, 'apron/relative'),
+                                ('relative_velocity', Vector3Stamped,
+                                 'apron/relative_velocity'),
+                                ('visible', Bool, 'apron/visible'),
+                                ('diagnostics', DiagnosticArray, 'diagnostics')):
+            n.create_subscription(cls, topic, self._recorder(key), RELIABLE_QOS)
+        executor.add_node(n)
+        self.yaw, self.pixel, self.height_m, self.vehicle_xy = yaw, pixel, height_m, vehicle_xy
+        self.enabled = {'imu': True, 'position': True, 'range': True, 'blocks': True}
+        self.show_beacon = True
+        self.camera_latency_s = 0.02
+        self.period_s = 0.02  # 50 Hz: the machine may be shared, keep rclpy's load low
+        self.sent_t_s = None
+        self.hook = None  # callable(kind, msg) -> msg, to corrupt messages
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _recorder(self, key):
+        def cb(msg):
+            with self.lock:
+                self.rx[key].append((time.monotonic(), msg))
+        return cb
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+
+    def got(self, key):
+        with self.lock:
+            return list(self.rx[key])
+
+    def clear(self):
+        with self.lock:
+            for v in self.rx.values():
+                v.clear()
+
+    def now_s(self):
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    @staticmethod
+    def stamp(header, t_s):
+        sec = math.floor(t_s)
+        header.stamp.sec, header.stamp.nanosec = int(sec), int((t_s - sec) * 1e9)
+
+    def _send(self, kind, msg):
+        if self.hook is not None:
+            msg = self.hook(kind, msg)
+        if msg is not None:
+            self.pub[kind].publish(msg)
+
+    def _run(self):
+        while not self._stop.is_set():
+            t = self.now_s()
+            x, y = self.vehicle_xy
+            if self.enabled['imu']:
+                imu = self.m['Imu']()
+                self.stamp(imu.header, t)
+                imu.header.frame_id = 'base_link'
+                o = imu.orientation
+                o.w, o.x, o.y, o.z = quat(0.0, 0.0, self.yaw)
+                imu.linear_acceleration.z = G  # level hover: specific force (0, 0, +g)
+                self._send('imu', imu)
+            if self.enabled['position']:
+                od = self.m['Odometry']()
+                self.stamp(od.header, t)
+                od.header.frame_id, od.child_frame_id = 'map', 'base_link'
+                p = od.pose.pose.position
+                p.x, p.y, p.z = x, y, self.height_m  # ground at z = 0
+                self._send('odom', od)
+                tw = self.m['TwistStamped']()
+                tw.header = od.header
+                self._send('velocity', tw)
+            if self.enabled['range']:
+                r = self.m['Range']()
+                self.stamp(r.header, t)
+                r.header.frame_id = 'lidar_link'
+                r.min_range, r.max_range = 0.05, 40.0
+                r.range = self.height_m
+                self._send('range', r)
+            if self.enabled['blocks']:
+                from geometry_msgs.msg import Point32
+                pc = self.m['PointCloud']()
+                self.stamp(pc.header, t - self.camera_latency_s)
+                pc.header.frame_id = 'camera_optical'
+                if self.show_beacon:
+                    pc.points = [Point32(x=float(self.pixel[0]), y=float(self.pixel[1]), z=0.0)]
+                    vals = ([1.0], [6.0], [6.0])
+                else:
+                    vals = ([], [], [])
+                C = self.m['ChannelFloat32']
+                pc.channels = [C(name='signature', values=vals[0]),
+                               C(name='width', values=vals[1]),
+                               C(name='height', values=vals[2])]
+                self._send('blocks', pc)
+            with self.lock:
+                self.sent_t_s = t
+            time.sleep(self.period_s)
+
+
+@pytest.fixture
+def make(ros_context):
+    made = []
+
+    def _make(overrides=None, **helper_kw):
+        from apron_estimator.node import ApronEstimatorNode
+        from rclpy.parameter import Parameter
+        context, executor = ros_context
+        values = {'rate_hz': 50.0}
+        values.update(overrides or {})
+        params = [Parameter(k, value=v) for k, v in values.items()]
+        node = ApronEstimatorNode(context=context, parameter_overrides=params)
+        executor.add_node(node)
+        helper = Helper(context, executor, **helper_kw)
+        assert wait_for(lambda: helper.pub['imu'].get_subscription_count() >= 1
+                        and helper.pub['blocks'].get_subscription_count() >= 1
+                        and node.pub_state.get_subscription_count() >= 1)
+        made.append(helper)
+        return node, helper.start()
+
+    yield _make
+    for h in made:
+        h.stop()
+
+
+def latest_state(helper):
+    from apron_estimator.types import ApronState
+    msgs = helper.got('state')
+    return ApronState.from_array(msgs[-1][1].data) if msgs else None
+
+
+def wait_tracked(helper, timeout_s=4.0):
+    def ok():
+        st = latest_state(helper)
+        return st is not None and st.tracked and st.vertical.valid
+    return wait_for(ok, timeout_s)
+
+
+def test_beacon_at_the_image_centre_is_straight_below(make):
+    node, helper = make(yaw=0.7, pixel=(160.0, 100.0), height_m=2.0, vehicle_xy=(3.0, -1.0))
+    assert wait_tracked(helper)
+    time.sleep(0.3)
+    st = latest_state(helper)
+    assert st.visible
+    assert st.rel_position_m == pytest.approx((0.0, 0.0), abs=0.01)
+    assert st.vertical.height_m == pytest.approx(2.0, abs=0.05)
+    assert st.apron_position_m == pytest.approx((3.0, -1.0), abs=0.01)
+    # layout label and stamp in the node clock domain
+    msg = helper.got('state')[-1][1]
+    assert msg.layout.dim[0].label == 'apron_state_v1' and msg.layout.dim[0].size == 29
+    assert abs(st.t_s - helper.now_s()) < 0.5
+    vis = helper.got('visible')
+    assert vis and vis[-1][1].data is True
+    od = helper.got('odom')[-1][1]
+    assert (od.header.frame_id, od.child_frame_id) == ('map', 'apron')
+    assert (od.pose.pose.position.x, od.pose.pose.position.y) == pytest.approx((3.0, -1.0),
+                                                                               abs=0.01)
+    assert od.pose.pose.position.z == pytest.approx(0.0, abs=0.1)  # the ground surface
+    assert 0.0 < od.pose.covariance[0] < 0.01 and 0.0 < od.pose.covariance[7] < 0.01
+    assert node.rejected == dict.fromkeys(node.rejected, 0)
+
+
+def test_offset_pixel_gives_the_pinhole_offset_with_enu_signs(make):
+    """Nose north (yaw π/2), beacon 40 px right and 30 px below the centre at h = 2 m:
+    h·40/f_x to the right (= east, +x) and h·30/f_y behind (= south, −y)."""
+    h, dx, dy = 2.0, 40.0, 30.0
+    _node, helper = make(yaw=math.pi / 2, pixel=(160.0 + dx, 100.0 + dy), height_m=h,
+                         vehicle_xy=(10.0, 20.0))
+    assert wait_tracked(helper)
+    time.sleep(0.3)
+    st = latest_state(helper)
+    right, back = h * dx / FX, h * dy / FY
+    assert (right, back) == pytest.approx((0.2887, 0.2609), abs=1e-3)
+    assert st.rel_position_m == pytest.approx((right, -back), abs=0.01)
+    assert st.rel_position_body_m == pytest.approx((-back, -right), abs=0.01)  # FLU
+    assert st.apron_position_m == pytest.approx((10.0 + right, 20.0 - back), abs=0.01)
+    assert st.rel_velocity_mps == pytest.approx((0.0, 0.0), abs=0.05)
+    rel = helper.got('relative')[-1][1]
+    assert rel.header.frame_id == 'base_link'
+    assert (rel.point.x, rel.point.y) == pytest.approx((-back, -right), abs=0.01)
+    assert rel.point.z == pytest.approx(-h, abs=0.05)
+    rv = helper.got('relative_velocity')[-1][1]
+    assert (rv.vector.x, rv.vector.y) == pytest.approx((0.0, 0.0), abs=0.05)
+    od = helper.got('odom')[-1][1]
+    assert (od.pose.pose.position.x, od.pose.pose.position.y) == pytest.approx(
+        (10.0 + right, 20.0 - back), abs=0.01)
+
+
+def stamp_s(header):
+    return round(header.stamp.sec + header.stamp.nanosec * 1e-9, 6)
+
+
+def test_visibility_loss_then_track_loss(make):
+    """Empty frames: ``visible`` drops at once, ``tracked`` only after lost_timeout_s (1 s);
+    apron/odom and apron/relative are published exactly on the ticks that are tracked."""
+    _node, helper = make(pixel=(180.0, 90.0))
+    assert wait_tracked(helper)
+    helper.show_beacon = False  # empty frames keep arriving
+    assert wait_for(lambda: latest_state(helper).visible is False, 2.0)
+    st = latest_state(helper)
+    assert st.tracked and st.time_since_seen_s < 1.0
+    assert wait_for(lambda: helper.got('visible')[-1][1].data is False, 1.0)
+    assert wait_for(lambda: not latest_state(helper).tracked, 3.0)
+    t_lost = latest_state(helper).t_s
+    assert wait_for(lambda: latest_state(helper).t_s > t_lost + 0.3, 3.0)
+    time.sleep(0.2)  # let the last odom/relative messages of those ticks arrive
+
+    states = [state_of(m) for _, m in helper.got('state')]
+    odom_stamps = {stamp_s(m.header) for _, m in helper.got('odom')}
+    rel_stamps = {stamp_s(m.header) for _, m in helper.got('relative')}
+    untracked = [round(x.t_s, 6) for x in states if not x.tracked]
+    tracked = [round(x.t_s, 6) for x in states if x.tracked]
+    assert len(untracked) >= 3 and len(tracked) >= 3
+    assert not odom_stamps.intersection(untracked)
+    assert not rel_stamps.intersection(untracked)
+    assert odom_stamps <= set(tracked) and rel_stamps <= set(tracked)
+    assert len(odom_stamps) >= len(tracked) // 2  # reliable QoS: (nearly) all arrive
+    # the seen-then-lost sequence is consistent with lost_timeout_s
+    last_visible = max(x.t_s for x in states if x.visible)
+    first_untracked = min(x.t_s for x in states if not x.tracked and x.t_s > last_visible)
+    assert 0.8 < first_untracked - last_visible < 1.6
+
+
+def state_of(msg):
+    from apron_estimator.types import ApronState
+    return ApronState.from_array(msg.data)
+
+
+@pytest.mark.parametrize('stream, reason', [('imu', 'no_attitude'),
+                                             ('position', 'no_position')])
+def test_stale_attitude_or_position_stops_all_outputs(make, stream, reason):
+    """No state is ever published whose tick is more than input_timeout_s (0.5 s) after the
+    last attitude / local position, and publishing resumes when it returns."""
+    node, helper = make()
+    assert wait_tracked(helper)
+    helper.enabled[stream] = False
+    time.sleep(0.05)
+    with helper.lock:
+        t_last = helper.sent_t_s
+    assert wait_for(lambda: node.withheld[reason] >= 10, 3.0)
+    time.sleep(0.2)
+    assert max(state_of(m).t_s for _, m in helper.got('state')) <= t_last + 0.5 + 0.05
+    assert max(stamp_s(m.header) for _, m in helper.got('odom')) <= t_last + 0.5 + 0.05
+    # the diagnostics say why
+    assert wait_for(lambda: any(s.message.endswith(reason)
+                                for _, d in helper.got('diagnostics')[-1:]
+                                for s in d.status), 2.5)
+    helper.enabled[stream] = True
+    assert wait_for(lambda: latest_state(helper).t_s > t_last + 0.6, 3.0)
+
+
+def test_nan_and_malformed_inputs_are_rejected_and_never_published(make):
+    """Corrupt one message of each kind in every few; the estimate stays right, nothing NaN
+    is published and every refusal is counted."""
+    node, helper = make(pixel=(200.0, 100.0), height_m=2.0)
+    count = {'n': 0}
+
+    def corrupt(kind, msg):
+        count['n'] += 1
+        if count['n'] % 7:
+            return msg
+        if kind == 'imu':
+            msg.orientation.x = math.nan
+        elif kind == 'odom':
+            msg.pose.pose.position.x = math.nan
+        elif kind == 'velocity':
+            msg.twist.linear.y = math.inf
+        elif kind == 'range':
+            msg.range = math.nan
+        elif kind == 'blocks':
+            if count['n'] % 2:
+                msg.channels = msg.channels[:2]      # missing 'height'
+            else:
+                msg.points[0].x = math.nan if msg.points else 0.0
+        return msg
+
+    helper.hook = corrupt
+    assert wait_tracked(helper)
+    time.sleep(1.0)
+    # an IMU message with a finite orientation but NaN acceleration
+    helper.hook = lambda kind, msg: (setattr(msg.linear_acceleration, 'x', math.nan) or msg
+                                     if kind == 'imu' else msg)
+    time.sleep(0.2)
+    helper.hook = None
+    st = latest_state(helper)
+    assert st.tracked
+    assert st.rel_position_m == pytest.approx((0.0, -2.0 * 40.0 / FX), abs=0.01)
+    for _, msg in helper.got('state'):
+        assert not any(math.isnan(v) for v in msg.data)
+    for _, od in helper.got('odom'):
+        assert all(map(math.isfinite, (od.pose.pose.position.x, od.pose.pose.position.y,
+                                       od.twist.twist.linear.x, od.twist.twist.linear.y)))
+    assert node.rejected['non_finite'] > 0           # NaN orientation / acceleration
+    assert node.rejected['malformed_cloud'] > 0
+    core = node.estimator.rejected
+    assert core['nan'] > 0                           # odom / velocity NaN, NaN block
+    assert core['vertical.nan'] > 0                  # NaN range
+
+
+def test_old_future_and_out_of_order_stamps_are_rejected(make):
+    node, helper = make()
+    assert wait_tracked(helper)
+    from geometry_msgs.msg import Point32
+    from sensor_msgs.msg import ChannelFloat32, Imu, PointCloud
+    old = PointCloud()
+    helper.stamp(old.header, helper.now_s() - 2.0)
+    old.points = [Point32(x=10.0, y=10.0)]
+    old.channels = [ChannelFloat32(name=n, values=[1.0]) for n in ('signature', 'width',
+                                                                   'height')]
+    helper.pub['blocks'].publish(old)
+    future = Imu()
+    helper.stamp(future.header, helper.now_s() + 5.0)
+    future.orientation.w = 1.0
+    helper.pub['imu'].publish(future)
+    assert wait_for(lambda: node.rejected['stale_stamp'] >= 1
+                    and node.rejected['future_stamp'] >= 1, 2.0)
+    before = node.estimator.rejected['out_of_order']
+    late = Imu()
+    helper.stamp(late.header, helper.now_s() - 0.2)  # fresh enough, but behind the history
+    late.orientation.w = 1.0
+    helper.pub['imu'].publish(late)
+    assert wait_for(lambda: node.estimator.rejected['out_of_order'] > before, 2.0)
+    assert latest_state(helper).rel_position_m == pytest.approx((0.0, 0.0), abs=0.01)
+
+
+def test_diagnostics_carry_counters_and_ages(make):
+    _node, helper = make()
+    assert wait_for(lambda: len(helper.got('diagnostics')) >= 2, 3.5)
+    status = helper.got('diagnostics')[-1][1].status[0]
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == status.OK
+    for key in ('age_imu_s', 'age_camera_s', 'rejected_malformed_cloud', 'core_rejected_nan',
+                'core_rejected_vertical.dropout', 'withheld_no_attitude', 'states_per_s'):
+        assert key in values
+    assert 0.0 <= float(values['age_imu_s']) < 0.2
+    assert 0 < int(values['states_per_s']) <= 55  # 50 Hz timer (slower on a busy machine)
+
+
+def test_parameters_reach_the_core(make):
+    """A different FOV changes the geometry: 90° full FOV → f_x = 160 px."""
+    node, helper = make({'camera.fov_x_deg': 90.0, 'horizontal.acquire_hits': 2,
+                         'vertical.surface_model': 'velocity'}, pixel=(200.0, 100.0))
+    p = node.estimator.params
+    assert (p.camera.fov_x_deg, p.horizontal.acquire_hits, p.vertical.surface_model) == (
+        90.0, 2, 'velocity')
+    assert wait_tracked(helper)
+    time.sleep(0.2)
+    assert latest_state(helper).rel_position_m == pytest.approx((0.0, -2.0 * 40.0 / 160.0),
+                                                                abs=0.01)
+
+
+def test_every_estimator_field_is_a_parameter():
+    from dataclasses import fields
+
+    from apron_estimator.estimator import EstimatorParams
+    from apron_estimator.node import PARAMS, SECTIONS
+    names = {s.name for s in PARAMS}
+    for prefix, cls in SECTIONS:
+        for f in fields(cls):
+            assert f'{prefix}.{f.name}' in names
+    for f in fields(EstimatorParams):
+        if f.name not in dict(SECTIONS):
+            assert f.name in names
+    for s in PARAMS:
+        assert s.description
+
+
+@pytest.mark.parametrize('name, value, match', [
+    ('camera.fov_x_deg', 200.0, r"'camera.fov_x_deg'.*\[1.0, 170.0\]"),
+    ('horizontal.acquire_hits', 0, r"'horizontal.acquire_hits'"),
+    ('vertical.surface_model', 'jerk', r"'vertical.surface_model'.*one of"),
+    ('rate_hz', 0.0, r"'rate_hz'.*\[1, 1000\]"),
+    ('input_timeout_s', -1.0, r"'input_timeout_s'.*> 0"),
+    ('beacon_signature', -2, r"'beacon_signature'"),
+    ('map_frame', ' ', r"'map_frame'.*empty"),
+    ('camera.fov_y_deg', 'wide', r'camera.fov_y_deg'),   # wrong type
+])
+def test_bad_parameters_are_rejected_clearly(ros_context, name, value, match):
+    from apron_estimator.node import ApronEstimatorNode
+    from deckland_common.params import ParameterError
+    from rclpy.parameter import Parameter
+    context, _ = ros_context
+    with pytest.raises(ParameterError, match=match):
+        ApronEstimatorNode(context=context, parameter_overrides=[Parameter(name, value=value)])
+
+
+def test_main_exits_2_on_a_bad_parameter(capsys):
+    from apron_estimator.node import main
+    assert main(['--ros-args', '-p', 'camera.fov_x_deg:=0.5']) == 2
+    assert 'camera.fov_x_deg' in capsys.readouterr().err
