@@ -252,9 +252,9 @@ def resolve_topics(bag_topics: Iterable[str], namespace: str | None = None) -> d
     return out
 
 
-def _stamp_s(msg: Any) -> float:
+def _stamp_ns(msg: Any) -> int:
     st = msg.header.stamp
-    return float(st.sec) + float(st.nanosec) * 1e-9
+    return int(st.sec) * 1_000_000_000 + int(st.nanosec)
 
 
 def series_from_bag(bag_dir: str | os.PathLike[str], namespace: str | None = None,
@@ -284,6 +284,7 @@ def series_from_bag(bag_dir: str | os.PathLike[str], namespace: str | None = Non
         raise PlotError(f'{path}: none of the known topics ({", ".join(TOPICS)}) is in the bag '
                         f'(it has: {", ".join(sorted(types)) or "nothing"})')
     col = _Collector()
+    ref_ns = int(info.start_ns)
     for rel, topic in list(resolved.items()):
         if types.get(topic) != TOPICS[rel]:
             col.reject('wrong_type')
@@ -307,9 +308,9 @@ def series_from_bag(bag_dir: str | os.PathLike[str], namespace: str | None = Non
             except Exception:  # a truncated or foreign CDR payload
                 col.reject('decode')
                 continue
-            t = t_ns * 1e-9
             if time_source == 'header' and hasattr(msg, 'header'):
-                t = _stamp_s(msg)
+                t_ns = _stamp_ns(msg)
+            t = (t_ns - ref_ns) * 1e-9   # integer difference first: no loss at 1.7e9 s
             if rel == 'sim/outcome':
                 try:
                     parsed = json.loads(msg.data)
@@ -330,7 +331,9 @@ def series_from_bag(bag_dir: str | os.PathLike[str], namespace: str | None = Non
         ttl = outcome.get('time_to_land_s')
         if isinstance(ttl, int | float) and math.isfinite(ttl):
             touchdown, td_source = float(ttl), 'sim/outcome time_to_land_s'
-    return col.finish(str(path), touchdown, td_source)
+    out = col.finish(str(path), touchdown, td_source)
+    out.trigger_s += ref_ns * 1e-9
+    return out
 
 
 def _add_message(col: _Collector, rel: str, t: float, msg: Any,
