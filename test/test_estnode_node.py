@@ -431,7 +431,7 @@ def test_every_estimator_field_is_a_parameter():
     from dataclasses import fields
 
     from apron_estimator.estimator import EstimatorParams
-    from apron_estimator.node import PARAMS, SECTIONS
+    from apron_estimator.node import NODE_PARAMS, PARAMS, SECTIONS
     names = {s.name for s in PARAMS}
     for prefix, cls in SECTIONS:
         for f in fields(cls):
@@ -439,8 +439,11 @@ def test_every_estimator_field_is_a_parameter():
     for f in fields(EstimatorParams):
         if f.name not in dict(SECTIONS):
             assert f.name in names
+    from apron_estimator.node import ESTIMATOR_DESCRIPTIONS
     for s in PARAMS:
         assert s.description
+        if s.name in names - {n.name for n in NODE_PARAMS}:
+            assert s.name in ESTIMATOR_DESCRIPTIONS, f'describe {s.name} in node.py'
 
 
 @pytest.mark.parametrize('name, value, match', [
@@ -452,6 +455,7 @@ def test_every_estimator_field_is_a_parameter():
     ('beacon_signature', -2, r"'beacon_signature'"),
     ('map_frame', ' ', r"'map_frame'.*empty"),
     ('camera.fov_y_deg', 'wide', r'camera.fov_y_deg'),   # wrong type
+    ('camera.fov_x_deg', 60, r"'camera.fov_x_deg'.*INTEGER.*DOUBLE"),  # int for a float
 ])
 def test_bad_parameters_are_rejected_clearly(ros_context, name, value, match):
     from apron_estimator.node import ApronEstimatorNode

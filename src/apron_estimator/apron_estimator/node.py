@@ -134,7 +134,8 @@ def _estimator_specs() -> list[ParamSpec]:
             for f in fields(cls)]
     rows += [(f.name, f.default) for f in fields(EstimatorParams) if f.default is not MISSING]
     for name, default in rows:
-        desc = ESTIMATOR_DESCRIPTIONS[name] + ' (core default; the core validates)'
+        desc = ESTIMATOR_DESCRIPTIONS.get(name, 'estimator field (see the package README)')
+        desc += ' (core default; the core validates)'
         if name == 'vertical.surface_model':
             specs.append(one_of(name, default, ('accel', 'velocity'), desc))
         else:
