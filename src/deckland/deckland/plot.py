@@ -108,9 +108,10 @@ CSV_COLUMNS: dict[str, str] = {
 }
 _REL_BODY = ('rel_x_body', 'rel_y_body', 'rel_vx_body', 'rel_vy_body')
 
-#: Touchdown fallback for a trace: the truth height above the surface at or below
-#: ``gear_height_m`` (0.15, docs/interfaces.md) plus this tolerance.
-CONTACT_HEIGHT_M = 0.15 + 0.02
+#: Touchdown in a trace: the first sample whose truth height above the surface is at or below
+#: ``gear_height_m`` (0.15 m, docs/interfaces.md: contact) plus 1 mm (the simulator's resting
+#: height reads 0.15001 m; 1 mm is at most 5 ms early at the 0.2 m/s final closing speed).
+CONTACT_HEIGHT_M = 0.15 + 0.001
 
 
 class PlotError(Exception):
@@ -184,7 +185,11 @@ class _Collector:
         self.t_min = min(self.t_min, t)
 
     def finish(self, source: str, touchdown_rel_s: float | None = None,
-               touchdown_source: str = 'none') -> LandingSeries:
+               touchdown_source: str = 'none', contact_height: str | None = None
+               ) -> LandingSeries:
+        """Shift to the trigger; touchdown: ``touchdown_rel_s`` (already relative) if given,
+        else the truth contact in series ``contact_height`` (height above the surface at or
+        below :data:`CONTACT_HEIGHT_M` after the trigger), else the first LANDED mode."""
         for ts, vs in self.data.values():
             if any(b < a for a, b in itertools.pairwise(ts)):
                 order = sorted(range(len(ts)), key=ts.__getitem__)   # stable
@@ -201,8 +206,14 @@ class _Collector:
         for name, (ts, vs) in self.data.items():
             out.series[name] = ([t - trigger for t in ts], list(vs))
         out.modes = [(t - trigger, m) for t, m in self.modes]
+        pair = out.get(contact_height) if contact_height else None
+        contact = None if pair is None else next(
+            (t for t, h in zip(*pair, strict=True) if t >= 0.0 and h <= CONTACT_HEIGHT_M), None)
         if touchdown_rel_s is not None and math.isfinite(touchdown_rel_s):
             out.touchdown_s, out.touchdown_source = float(touchdown_rel_s), touchdown_source
+        elif contact is not None:
+            out.touchdown_s = contact
+            out.touchdown_source = f'truth height <= {CONTACT_HEIGHT_M:.3f} m'
         else:
             landed = next((t for t, m in out.modes if m == 'LANDED' and t >= 0.0), None)
             if landed is not None:
@@ -449,10 +460,11 @@ def series_from_trace(trace: Mapping[str, Sequence[float]],
     """Time series from a runner trace (``RunResult.trace`` or a parsed CSV).
 
     ``trace['t']`` is required; other columns are mapped with :data:`CSV_COLUMNS`; ``mode``
-    holds the index into ``landing_planner.types.Mode``. Touchdown: the first LANDED mode,
-    else the first sample where the truth height above the surface is at or below
-    :data:`CONTACT_HEIGHT_M` (after the trigger). Raises :class:`PlotError` without ``t`` or
-    without any known column.
+    holds the index into ``landing_planner.types.Mode``. Touchdown: the first sample (after
+    the trigger) whose truth height above the surface is at or below
+    :data:`CONTACT_HEIGHT_M` (the simulator's contact), else the first LANDED mode (the
+    planner's detection, later by its confirmation time). Raises :class:`PlotError`
+    without ``t`` or without any known column.
     """
     if 't' not in trace:
         raise PlotError(f'{source}: no time column "t"')
@@ -483,16 +495,7 @@ def series_from_trace(trace: Mapping[str, Sequence[float]],
             if target in _REL_BODY and tracked is not None and not tracked[i] > 0.5:
                 f = math.nan
             col.add(target, t, f, allow_nan=gap_ok)
-    out = col.finish(source)
-    if out.touchdown_s is None:
-        pair = out.get('height_true')
-        if pair is not None:
-            hit = next((t for t, h in zip(*pair, strict=True)
-                        if t >= 0.0 and h <= CONTACT_HEIGHT_M), None)
-            if hit is not None:
-                out.touchdown_s = hit
-                out.touchdown_source = f'truth height <= {CONTACT_HEIGHT_M:.2f} m'
-    return out
+    return col.finish(source, contact_height='height_true')
 
 
 def _to_float(v: Any) -> float:
@@ -627,9 +630,11 @@ def write_figures(data: LandingSeries, out_dir: str | os.PathLike[str], *,
                 deck = data.value_at('surface_z_est', td)
             if not math.isnan(deck):
                 ax.plot([td], [deck], 'kv', ms=8)
+            right = td > 0.5 * (xlim[0] + xlim[1])    # keep the label inside the axes
             ax.annotate(f'touchdown {td:.2f} s\n({data.touchdown_source})',
-                        xy=(td, 0.02), xycoords=('data', 'axes fraction'),
-                        xytext=(4, 0), textcoords='offset points', fontsize=8)
+                        xy=(td, 0.03), xycoords=('data', 'axes fraction'),
+                        xytext=(-4 if right else 4, 0), textcoords='offset points',
+                        ha='right' if right else 'left', fontsize=8)
             ax.set_title('deck heave and vehicle height', fontsize=10)
         fig.suptitle(suptitle, fontsize=10)
         fig.tight_layout()
