@@ -38,6 +38,7 @@ LIFTOFF_MARGIN_MPS2 = 0.2
 FAILSAFE_PERIOD_S = 0.01
 FAILSAFE_LAND_SPEED_MPS = 0.7
 FAILSAFE_MAX_TILT_RAD = 0.3
+FAILSAFE_BRAKED_MPS = 0.3      # horizontal speed below which the hold point is fixed
 GUST_UPDATE_S = 0.01 - 1e-9   # gusts (τ ~ s) are held over 10 ms
 
 
@@ -165,6 +166,7 @@ class World:
         self._fs_t0 = 0.0
         self._fs_next = 0.0
         self._fs_ref = (0.0, 0.0, 0.0, 0.0)
+        self._fs_braked = False
 
     # --- commands and stepping -------------------------------------------------------------
 
@@ -188,10 +190,11 @@ class World:
         ``t_s`` may be lost (False; the vehicle keeps the previous command) or queued and
         applied ``latency_s`` later (FIFO, never reordered). When no command has been applied
         for ``loss_timeout_s`` (PX4 COM_OF_LOSS_T, 1 s) the world's autopilot takes over
-        (:attr:`failsafe` = ``'hold'``: hold the position, altitude and heading of that moment
-        with a simple controller on truth; after ``hold_s`` more, ``'land'``: descend at
-        0.7 m/s, zero thrust once on a surface). The next command that arrives ends the
-        failsafe (the bridge re-engages offboard). Monitoring starts with the first call.
+        (:attr:`failsafe` = ``'hold'``: brake to rest, then hold that position and the altitude
+        and heading of the moment of loss with a simple controller on truth; after ``hold_s``
+        more, ``'land'``: descend at 0.7 m/s, zero thrust once on a surface). The next command
+        that arrives ends the failsafe (the bridge re-engages offboard). Monitoring starts with
+        the first accepted call.
         """
         fs = self.faults
         if fs is None or not fs.has_link:
@@ -239,6 +242,7 @@ class World:
             self._fs_t0 = t
             self._fs_next = t
             self._fs_ref = (v.x, v.y, v.z, v.yaw)
+            self._fs_braked = False
         if self.failsafe == 'hold' and t - self._fs_t0 >= fs.hold_s:   # type: ignore
             self.failsafe = 'land'
         if t >= self._fs_next - 1e-12:
@@ -252,6 +256,13 @@ class World:
         p = self.params
         g = p.gravity_mps2
         x0, y0, z0, yaw0 = self._fs_ref
+        if not self._fs_braked:
+            # PX4 Hold: brake first, then hold where the vehicle came to rest
+            if v.vx * v.vx + v.vy * v.vy > FAILSAFE_BRAKED_MPS ** 2:
+                x0, y0 = v.x, v.y
+            else:
+                self._fs_braked = True
+            self._fs_ref = (x0, y0, z0, yaw0)
         ax = 1.0 * (x0 - v.x) - 1.8 * v.vx
         ay = 1.0 * (y0 - v.y) - 1.8 * v.vy
         a_max = g * math.tan(FAILSAFE_MAX_TILT_RAD)
