@@ -38,7 +38,12 @@ from pathlib import Path
 import sys
 from typing import Any
 
-from deckland_common.frames import quaternion_to_euler, rot_body_to_world, world_to_body_xy
+from deckland_common.frames import (
+    mat_vec,
+    quaternion_to_euler,
+    rot_body_to_world,
+    world_to_body_xy,
+)
 
 #: Planner modes that are not a landing (the trigger is the first mode outside this set).
 NOT_LANDING_MODES = frozenset({'IDLE', 'HOLD', 'TAKEOFF'})
@@ -386,7 +391,7 @@ def _add_message(col: _Collector, rel: str, t: float, msg: Any,
         col.add('z_true', t, vals[2])
         roll, pitch, yaw = quaternion_to_euler(*vals[3:])
         # the twist of sim/truth/vehicle is in base_link (REP-105): back to ENU
-        vw = _body_to_world(roll, pitch, yaw, vb)
+        vw = mat_vec(rot_body_to_world(roll, pitch, yaw), vb)
         truth_v.append((t, vals[0], vals[1], yaw, vw[0], vw[1]))
     elif rel == 'sim/truth/apron':
         p, v = msg.pose.pose.position, msg.twist.twist.linear
@@ -399,14 +404,6 @@ def _add_message(col: _Collector, rel: str, t: float, msg: Any,
         col.add('deck_z_true', t, vals[2])
         for lst, x in zip(truth_a, (t, vals[0], vals[1], vals[3], vals[4]), strict=True):
             lst.append(x)
-
-
-def _body_to_world(roll: float, pitch: float, yaw: float,
-                   v: tuple[float, float, float]) -> tuple[float, float, float]:
-    r = rot_body_to_world(roll, pitch, yaw)
-    return (r[0][0] * v[0] + r[0][1] * v[1] + r[0][2] * v[2],
-            r[1][0] * v[0] + r[1][1] * v[1] + r[1][2] * v[2],
-            r[2][0] * v[0] + r[2][1] * v[1] + r[2][2] * v[2])
 
 
 def _add_apron_state(col: _Collector, t: float, data: Any) -> None:
