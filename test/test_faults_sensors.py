@@ -217,7 +217,7 @@ def test_bad_times_never_raise_or_leak_nan():
     w = World(calm(faults), 1)
     w.step(float('nan'))
     w.set_command(float('nan'), 0.0, 0.0, 1.0)
-    assert w.rejected == {'nan': 1, 'bad_dt': 1}
+    assert w.rejected == {'nan': 1, 'bad_dt': 1, 'out_of_order': 0}
     for _ in range(50):
         w.step(0.01)
         _, blocks = w.read_camera()

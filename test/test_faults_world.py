@@ -194,9 +194,14 @@ def test_command_link_without_link_faults_is_set_command():
     w2 = World(calm([{'type': 'mavlink_link_loss', 'start_s': 5.0}]), 1)
     assert w2.command_link(0.0, 0.0, 0.0, 0.0, math.inf) is False
     assert w.rejected['nan'] == 1 and w2.rejected['nan'] == 1
+    assert w2.command_link(1.0, 0.0, 0.0, 0.0, 20.0) is True
+    assert w2.command_link(0.5, 0.3, 0.0, 0.0, 10.0) is False          # stamp went back
+    assert w2.rejected['out_of_order'] == 1 and w2.vehicle.cmd_thrust == 20.0
+    w3 = World(calm([{'type': 'mavlink_link_loss', 'start_s': 5.0}]), 1)
+    w3.command_link(0.0, 0.0, 0.0, 0.0, math.nan)
     for _ in range(800):
-        w2.step(DT)
-    assert w2.failsafe is None      # monitoring starts only with an accepted command
+        w3.step(DT)
+    assert w3.failsafe is None      # monitoring starts only with an accepted command
 
 
 def test_step_cost_with_and_without_faults():

@@ -152,7 +152,7 @@ class World:
         self.contact: ContactEvent | None = None
         self.resting_on: str | None = None
         self.max_thrust_n = self.vehicle.thrust_n
-        self.rejected: dict[str, int] = {'nan': 0, 'bad_dt': 0}
+        self.rejected: dict[str, int] = {'nan': 0, 'bad_dt': 0, 'out_of_order': 0}
 
         # fault injection (deck_simulator.faults): nothing at all without faults
         cx0, cy0, _, _, _ = self.deck.state(0.0)
@@ -162,6 +162,7 @@ class World:
         self.link_stats: dict[str, int] = {'sent': 0, 'lost': 0, 'delayed': 0, 'failsafes': 0}
         self._link_used = False
         self._last_rx_t = 0.0
+        self._last_tx_t = 0.0
         self._queue: deque = deque()
         self._fs_t0 = 0.0
         self._fs_next = 0.0
@@ -194,7 +195,8 @@ class World:
         and heading of the moment of loss with a simple controller on truth; after ``hold_s``
         more, ``'land'``: descend at 0.7 m/s, zero thrust once on a surface). The next command
         that arrives ends the failsafe (the bridge re-engages offboard). Monitoring starts with
-        the first accepted call.
+        the first accepted call. A non-finite value or a ``t_s`` older than the previous call's
+        is rejected (``rejected['nan']`` / ``['out_of_order']``, False).
         """
         fs = self.faults
         if fs is None or not fs.has_link:
@@ -207,7 +209,11 @@ class World:
             return False
         if not self._link_used:
             self._link_used = True
-            self._last_rx_t = t_s
+            self._last_rx_t = self._last_tx_t = t_s
+        elif t_s < self._last_tx_t:
+            self.rejected['out_of_order'] += 1
+            return False
+        self._last_tx_t = t_s
         self.link_stats['sent'] += 1
         delay = fs.link_fate(t_s)
         cmd = (roll_rad, pitch_rad, yaw_rad, thrust_n)
