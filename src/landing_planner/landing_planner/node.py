@@ -97,7 +97,9 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'gear_height_m': 'body origin above the bottom of the landing gear (m)',
     'landed_height_tol_m': 'landed: height within this (m) of gear_height_m',
     'landed_speed_tol_mps': 'landed: |closing speed| below this (m/s)',
-    'landed_hold_s': 'landed: both conditions held this long (s) (Step 15)',
+    'landed_hold_s': 'landed: the conditions held this long (s) (Step 15)',
+    'landed_press_m': 'landed: the height reference already this far (m) below the measured '
+                      'height (< final_press_m)',
     'invalid_timeout_s': 'invalid vehicle/vertical state this long (s) → safe mode',
     'descent_profile': "'deck_relative' (paper) or 'constant_rate' (world-rate baseline)",
     'constant_rate_mps': "world descent rate (m/s) of the 'constant_rate' profile",
