@@ -96,7 +96,7 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'fallback_speed_mps': 'fallback descent speed (m/s) above the final-approach height',
     'gear_height_m': 'body origin above the bottom of the landing gear (m)',
     'landed_height_tol_m': 'landed: height within this (m) of gear_height_m',
-    'landed_speed_tol_mps': 'landed: |closing speed| below this (m/s)',
+    'landed_speed_tol_mps': 'landed: closing speed magnitude below this (m/s)',
     'landed_hold_s': 'landed: the conditions held this long (s) (Step 15)',
     'landed_press_m': 'landed: the height reference already this far (m) below the measured '
                       'height (< final_press_m)',
@@ -114,7 +114,8 @@ HORIZONTAL_FIELDS: dict[str, tuple[str, str]] = {
     'max_tilt_rad': ('max_tilt_rad', 'tilt limit of the attitude command (rad)'),
     'xy_max_integral_accel_mps2': ('max_integral_accel_mps2',
                                    'clamp of the integral term per axis (m/s^2)'),
-    'xy_integral_zone_m': ('integral_zone_m', 'integrate only while |position error| < this (m)'),
+    'xy_integral_zone_m': ('integral_zone_m',
+                           'integrate only while the position error is below this (m)'),
     'gravity_mps2': ('gravity_mps2', 'gravity used to turn acceleration into tilt (m/s^2)'),
 }
 
