@@ -168,18 +168,40 @@ def test_descend_to_final_when_vertically_close_and_final_continues_blind():
     assert d.out.z_d_dot_mps < 0.0
 
 
-def test_final_to_landed_by_height_and_speed_for_the_hold_time():
+def test_final_to_landed_by_height_speed_and_pressing_reference_for_the_hold_time():
     d = aligned_driver()
     d.run(0.6)
     d.height = 0.4
     d.run(0.05)
     assert d.out.mode is Mode.FINAL
     d.height, d.closing = 0.17, 0.0             # at gear height (0.15 + 0.05 tolerance)
-    d.run(0.25)
-    assert d.out.mode is Mode.FINAL             # 0.3 s not yet elapsed
-    d.run(0.1)
-    assert d.out.mode is Mode.LANDED and not d.out.thrust_enabled
+    press = d.p.params.landed_press_m
+    # The vehicle rests while the reference keeps descending at the final speed; LANDED only
+    # once the reference is landed_press_m below the height, then held for landed_hold_s.
+    t_press = None
+    for _ in range(1500):
+        d.step()
+        if t_press is None and d.out.z_d_m <= 0.17 - press:
+            t_press = d.t
+        if d.out.mode is Mode.LANDED:
+            break
+    assert t_press is not None and d.out.mode is Mode.LANDED and not d.out.thrust_enabled
+    assert d.t - t_press == pytest.approx(d.p.params.landed_hold_s, abs=0.03)
     assert 'Step 15' in d.out.reason
+
+
+def test_hovering_at_gear_height_with_the_reference_there_is_not_landed():
+    """A centimetre of height bias must not cut the motors above the deck."""
+    d = aligned_driver()
+    d.run(0.6)
+    d.height = 0.4
+    d.run(0.05)
+    for _ in range(1500):                       # the vehicle follows the reference exactly
+        d.height = max(d.out.z_d_m, 0.17)
+        d.closing = d.out.z_d_dot_mps if d.out.z_d_m > 0.17 else 0.0
+        d.step()
+        if d.out.z_d_m > 0.17 - d.p.params.landed_press_m:
+            assert d.out.mode is Mode.FINAL
 
 
 def test_autopilot_landed_flag_lands_immediately():
@@ -388,7 +410,7 @@ def test_fast_fly_through_the_contact_band_is_not_landed():
     d.run(1.0)
     assert d.out.mode is Mode.FINAL
     d.closing = -0.25                           # slow: estimator noise on deck is ±0.2 m/s
-    d.run(0.35)
+    d.run(12.0)                                 # reference presses below, then the hold
     assert d.out.mode is Mode.LANDED
 
 

@@ -238,7 +238,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         with path.open('w') as fh:
             fh.write(','.join(keys) + '\n')
             for row in zip(*(result.trace[k] for k in keys), strict=True):
-                fh.write(','.join(f'{v:.5g}' for v in row) + '\n')
+                fh.write(','.join(f'{v:.9g}' for v in row) + '\n')
         print(f'wrote {path}')
     return 0 if result.success else 1
 

@@ -13,8 +13,10 @@ import sys
 #: Tool modules, in the order their subcommands are listed in ``deckland --help``.
 TOOL_MODULES = (
     'deckland.campaign',
+    'deckland.up',
     'deckland.topic',
     'deckland.bag',
+    'deckland.plot',
 )
 
 

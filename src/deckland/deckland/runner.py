@@ -40,6 +40,8 @@ class RunConfig:
     surface_accel_ff: bool = False
     dob_overrides: tuple[tuple[str, float], ...] = ()
     pid_overrides: tuple[tuple[str, float], ...] = ()
+    planner_overrides: tuple[tuple[str, float], ...] = ()
+    horizontal_overrides: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
@@ -89,7 +91,8 @@ def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
     """The planner is told only what an operator knows: where the landing area is."""
     ax, ay = scenario.apron.position_m
     profile = 'constant_rate' if config.controller == 'constant-rate' else 'deck_relative'
-    return PlannerParams(landing_area_m=(float(ax), float(ay)), descent_profile=profile)
+    return PlannerParams(landing_area_m=(float(ax), float(ay)), descent_profile=profile,
+                         **dict(config.planner_overrides))
 
 
 TRACE_FIELDS = (
@@ -107,8 +110,8 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     estimator = ApronEstimator(EstimatorParams())
     planner = LandingPlanner(planner_params_for(scenario, config))
     altitude = make_altitude_controller(config)
-    frame = 'surface'
-    horizontal = HorizontalController(HorizontalParams())
+    vframe = 'surface'
+    horizontal = HorizontalController(HorizontalParams(**dict(config.horizontal_overrides)))
 
     result = RunResult(seed=seed, scenario=scenario.name, controller=config.controller)
     trace: dict[str, list[float]] = {k: [] for k in TRACE_FIELDS} if config.record else {}
@@ -154,14 +157,14 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
             # --- dob_altitude ------------------------------------------------------------
             vert = apron.vertical
             new_frame = parse_vertical_frame(out.vertical_mode)
-            if new_frame != frame:  # the node resets on a frame switch too
+            if new_frame != vframe:  # the node resets on a frame switch too
                 altitude.reset()
-                frame = new_frame
-            inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, frame,
+                vframe = new_frame
+            inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, vframe,
                                  roll, pitch, surface_accel_ff=config.surface_accel_ff)
             alt_out = altitude.step(inp, dt_ctrl)
             thrust = alt_out.thrust_n if out.thrust_enabled else 0.0
-            world.set_command(roll_cmd, pitch_cmd, out.yaw_rad, thrust)
+            world.command_link(t, roll_cmd, pitch_cmd, out.yaw_rad, thrust)
             if config.record:
                 truth = world.truth()
                 _record(trace, t, pos, truth, vert, apron, out, alt_out, modes.index(mode))
