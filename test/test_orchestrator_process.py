@@ -135,7 +135,7 @@ def test_crash_is_reported_with_status_and_log_tail(pkg_env):
     text = out.getvalue()
     assert 'crasher (pid' in text and 'died: exit status 3' in text
     assert '  crasher | Traceback: boom' in text
-    assert orch.crashed == [event]
+    assert orch.crashed == [('crasher', 3)]
 
 
 def test_respawn_limit_and_exponential_backoff(pkg_env, tmp_path):

@@ -337,9 +337,10 @@ class Orchestrator:
             self.out.flush()
 
     @property
-    def crashed(self) -> list[ExitEvent]:
-        """Exits that were not injected (real crashes or unexpected exits)."""
-        return [e for e in self.exits if not e.injected]
+    def crashed(self) -> list[tuple[str, int]]:
+        """``(node, status)`` of the exits that were not injected (crashes, unexpected exits);
+        :attr:`exits` has the details (log tail, action)."""
+        return [(e.node, e.status) for e in self.exits if not e.injected]
 
     def pids(self) -> list[int]:
         """Every child pid ever started (respawns included)."""
