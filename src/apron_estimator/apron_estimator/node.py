@@ -61,6 +61,11 @@ from apron_estimator.vertical import VerticalParams
 #: Variance (m², m²/s², rad²) published for a quantity that is not known.
 UNKNOWN_VAR = 1.0e4
 
+#: Largest plausible IMU specific force per axis (m/s²): 16 g, the full scale of the Pixhawk
+#: IMUs. A larger (finite) reading cannot come from the sensor; fed to the core it wrecks the
+#: horizontal filter's acceleration integrals for good (tests/test_fuzz_nodes.py).
+MAX_SPECIFIC_FORCE_MPS2 = 16.0 * 9.80665
+
 #: Parameter prefix of each nested dataclass of EstimatorParams.
 SECTIONS = (('camera', CameraParams), ('horizontal', HorizontalParams),
             ('vertical', VerticalParams))
@@ -211,7 +216,7 @@ class ApronEstimatorNode(Node):
         #: messages refused by the node (never reach the estimator or an output)
         self.rejected: dict[str, int] = {
             'stale_stamp': 0, 'future_stamp': 0, 'malformed_cloud': 0, 'no_orientation': 0,
-            'bad_quaternion': 0, 'non_finite': 0, 'out_of_order': 0}
+            'bad_quaternion': 0, 'non_finite': 0, 'out_of_order': 0, 'implausible': 0}
         #: timer ticks that published nothing, by reason
         self.withheld: dict[str, int] = {'no_attitude': 0, 'no_position': 0,
                                          'non_finite_output': 0}
@@ -283,6 +288,9 @@ class ApronEstimatorNode(Node):
         acc = world_accel_from_specific_force(q, (a.x, a.y, a.z), self._g)
         if acc is None:
             self._reject('non_finite', 'vehicle/imu linear_acceleration')
+            return
+        if max(abs(a.x), abs(a.y), abs(a.z)) > MAX_SPECIFIC_FORCE_MPS2:
+            self._reject('implausible', 'vehicle/imu linear_acceleration (beyond 16 g)')
             return
         self.estimator.on_accel(t, acc)
 

@@ -1,0 +1,527 @@
+"""Fuzz every node's subscriptions with bad input, end to end through topics.
+
+Each node runs in-process in a private context (``ros_context``) on a SingleThreadedExecutor
+spun *in the test thread*: ``spin_once`` re-raises any exception a callback lets escape, and we
+catch and record it (every subscription callback is also wrapped, to count deliveries and to
+record exceptions with the topic that caused them). A helper node publishes the inputs and
+records every output topic; every float of every output message is checked recursively.
+
+Per bad message the harness knows whether the node *must* refuse it (a non-finite number in a
+field the node reads, a wrong layout, a stale or future stamp, ...) and then asserts that the
+node's rejection counters grew. Values the node may legitimately accept (huge but finite
+numbers, non-finite numbers in fields it does not read) carry no such expectation; they only
+must never make the node raise or publish a NaN/inf. After the fuzzing each node must again
+produce the physically right output for valid input.
+
+Hypothesis draws the bad messages (derandomized: the same examples on every run).
+"""
+
+from __future__ import annotations
+
+import array
+import collections
+import itertools
+import math
+import threading
+import time
+import traceback
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.ros
+
+NAN, INF = math.nan, math.inf
+G = 9.81
+_NS = itertools.count()
+
+#: special float64 values every field is tried with
+F64_SPECIAL = (NAN, INF, -INF, 1e308, -1e308, 0.0, -0.0, 5e-324, -1e-300, 1e6, -1e6)
+#: the same for float32 fields (a ROS float32 field refuses |x| > 3.4e38)
+F32_SPECIAL = (NAN, INF, -INF, 3.4e38, -3.4e38, 0.0, -0.0, 1e-45, 1e6, -1e6)
+F64 = st.one_of(st.sampled_from(F64_SPECIAL), st.floats(allow_nan=True, allow_infinity=True))
+F32 = st.one_of(st.sampled_from(F32_SPECIAL),
+                st.floats(width=32, allow_nan=True, allow_infinity=True))
+STAMP_KINDS = ('old', 'future', 'zero', 'backwards', 'max')
+
+FUZZ_SETTINGS = {'deadline': None, 'derandomize': True, 'database': None,
+                 'suppress_health_check': list(HealthCheck)}
+
+
+# --------------------------------------------------------------------------- helpers
+
+def stamp(header, t_s: float) -> None:
+    sec = math.floor(t_s)
+    header.stamp.sec, header.stamp.nanosec = int(sec), min(int((t_s - sec) * 1e9), 999_999_999)
+
+
+def non_finite_paths(value, path: str = ''):
+    """Yield (path, value) of every non-finite float inside a ROS message, recursively."""
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            yield path, value
+    elif isinstance(value, np.ndarray):
+        if value.dtype.kind == 'f':
+            for i in np.flatnonzero(~np.isfinite(value)):
+                yield f'{path}[{i}]', float(value.flat[i])
+    elif isinstance(value, array.array):
+        if value.typecode in 'fd':
+            for i, v in enumerate(value):
+                if not math.isfinite(v):
+                    yield f'{path}[{i}]', v
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            yield from non_finite_paths(v, f'{path}[{i}]')
+    elif hasattr(value, 'get_fields_and_field_types'):
+        for name in value.get_fields_and_field_types():
+            yield from non_finite_paths(getattr(value, name), f'{path}.{name}' if path else name)
+
+
+def _resolve(msg, path: str):
+    """The object holding the last element of ``path`` and that element's key/index."""
+    obj = msg
+    parts = path.replace('[', '.[').split('.')
+    for part in parts[:-1]:
+        obj = obj[int(part[1:-1])] if part.startswith('[') else getattr(obj, part)
+    last = parts[-1]
+    return obj, (int(last[1:-1]) if last.startswith('[') else last)
+
+
+def set_path(msg, path: str, value) -> bool:
+    """Set ``msg.<path>`` (``a.b[3].c``); False if the path does not exist (any more)."""
+    try:
+        obj, key = _resolve(msg, path)
+        if isinstance(key, int):
+            obj[key] = value
+        else:
+            setattr(obj, key, value)
+    except (IndexError, AttributeError, KeyError):
+        return False
+    return True
+
+
+def wait_until(pred, timeout_s: float = 5.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return bool(pred())
+
+
+class Rig:
+    """The node under test plus a helper node, both spun by an executor in the test thread.
+
+    ``inputs``: topic → (type, qos) published by the helper; ``outputs``: topic → (type, qos)
+    recorded by the helper. ``inf_ok(topic, path, value)`` says where an infinity is part of
+    the contract (REP-117 ranges, ``apron_state_v1`` fields 1 and 4); NaN never is.
+    """
+
+    def __init__(self, context, node, namespace: str, inputs: dict, outputs: dict,
+                 inf_ok=None) -> None:
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        self.node = node
+        self.ns = namespace
+        self.helper = Node('fuzz_helper', context=context, namespace=namespace)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.errors: list[str] = []
+        self.delivered: collections.Counter = collections.Counter()
+        self.bad_outputs: list[str] = []
+        self.out: dict[str, list] = {t: [] for t in outputs}
+        self._inf_ok = inf_ok or (lambda topic, path, value: False)
+        self._lock = threading.Lock()
+        for sub in list(node.subscriptions):
+            sub.callback = self._wrap(self._relative(sub.topic_name), sub.callback)
+        self.pubs = {t: self.helper.create_publisher(cls, t, qos)
+                     for t, (cls, qos) in inputs.items()}
+        for t, (cls, qos) in outputs.items():
+            self.helper.create_subscription(cls, t, self._recorder(t), qos)
+        self.executor.add_node(node)
+        self.executor.add_node(self.helper)
+
+    def _relative(self, topic: str) -> str:
+        prefix = self.ns.rstrip('/') + '/'
+        return topic[len(prefix):] if topic.startswith(prefix) else topic.lstrip('/')
+
+    def _wrap(self, topic, cb):
+        def wrapped(msg):
+            with self._lock:
+                self.delivered[topic] += 1
+            try:
+                return cb(msg)
+            except BaseException:
+                with self._lock:
+                    self.errors.append(f'{topic}: {traceback.format_exc()}')
+                raise
+        return wrapped
+
+    def _recorder(self, topic):
+        def record(msg):
+            for path, value in non_finite_paths(msg):
+                if math.isnan(value) or not self._inf_ok(topic, path, value):
+                    with self._lock:
+                        self.bad_outputs.append(f'{topic}.{path} = {value!r}')
+            with self._lock:
+                self.out[topic].append(msg)
+        return record
+
+    def spin(self, duration_s: float) -> None:
+        end = time.monotonic() + duration_s
+        while True:
+            try:
+                self.executor.spin_once(timeout_sec=0.002)
+            except Exception:  # a callback raised: record it, keep spinning
+                self.errors.append(traceback.format_exc())
+            if time.monotonic() >= end:
+                return
+
+    def spin_until(self, pred, timeout_s: float = 3.0) -> bool:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if pred():
+                return True
+            self.spin(0.005)
+        return bool(pred())
+
+    def wait_matched(self, timeout_s: float = 5.0) -> None:
+        def matched():
+            return (all(p.get_subscription_count() >= 1 for p in self.pubs.values())
+                    and all(self.helper.count_publishers(self.helper.resolve_topic_name(t))
+                            >= 1 for t in self.out))
+        assert self.spin_until(matched, timeout_s), 'publishers and subscribers never matched'
+
+    def send(self, topic: str, msg, timeout_s: float = 2.0) -> None:
+        """Publish and spin until the node's callback has run on it."""
+        n0 = self.delivered[topic]
+        self.pubs[topic].publish(msg)
+        assert self.spin_until(lambda: self.delivered[topic] > n0, timeout_s), \
+            f'{topic}: message never delivered'
+
+    def clear(self) -> None:
+        with self._lock:
+            for v in self.out.values():
+                v.clear()
+
+    def last(self, topic):
+        with self._lock:
+            return self.out[topic][-1] if self.out[topic] else None
+
+    def check_clean(self) -> None:
+        assert not self.errors, 'exception escaped a callback:\n' + '\n'.join(self.errors[:3])
+        assert not self.bad_outputs, f'non-finite numbers published: {self.bad_outputs[:10]}'
+
+    def close(self) -> None:
+        for n in (self.node, self.helper):
+            self.executor.remove_node(n)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.helper.destroy_node()
+        self.node.destroy_node()
+
+
+def now_of(rig: Rig) -> float:
+    return rig.helper.get_clock().now().nanoseconds * 1e-9
+
+
+def apply_stamp(header, kind: str, now: float, last_valid: float) -> None:
+    """Bad stamps: 100 s old/ahead, zero, just before the last valid one, the int32 limit."""
+    if kind == 'old':
+        stamp(header, now - 100.0)
+    elif kind == 'future':
+        stamp(header, now + 100.0)
+    elif kind == 'zero':
+        header.stamp.sec, header.stamp.nanosec = 0, 0
+    elif kind == 'backwards':
+        stamp(header, last_valid - 0.05)
+    elif kind == 'max':
+        header.stamp.sec, header.stamp.nanosec = 2 ** 31 - 1, 999_999_999
+
+
+# --------------------------------------------------------------------------- fuzz plans
+#
+# A topic plan is: make(now) -> valid message; float fields (path, 'f64'|'f32',
+# must_reject(value)); the stamp kinds the node must refuse; structural corruptions
+# (name -> (fn(msg), must_reject)).
+
+def _nonfinite(v):
+    return not math.isfinite(v)
+
+
+def _never(_v):
+    return False
+
+
+def _beyond_16g(v):
+    return not abs(v) <= 16.0 * 9.80665
+
+
+def mutation_strategy(plan):
+    fields = plan['fields']
+    choices = []
+    if fields:
+        choices.append(st.tuples(st.just('field'), st.integers(0, len(fields) - 1),
+                                 st.one_of(F64, F32)))
+    if plan.get('stamp'):
+        choices.append(st.tuples(st.just('stamp'), st.sampled_from(STAMP_KINDS), st.none()))
+    if plan.get('struct'):
+        choices.append(st.tuples(st.just('struct'), st.sampled_from(sorted(plan['struct'])),
+                                 st.none()))
+    return st.lists(st.one_of(*choices), min_size=1, max_size=3)
+
+
+def build_bad(plan, mutations, now: float, last_valid: float):
+    """Apply mutations to a valid message; returns (msg, must_reject)."""
+    msg = plan['make'](now)
+    must = False
+    for kind, a, b in sorted(mutations, key=lambda m: m[0] == 'struct'):
+        if kind == 'field':
+            path, width, rule = plan['fields'][a]
+            value = b
+            if width == 'f32' and math.isfinite(value) and abs(value) > 3.4e38:
+                value = math.copysign(3.4e38, value)
+            if set_path(msg, path, value):
+                must |= rule(value)
+        elif kind == 'stamp':
+            apply_stamp(plan['stamp_header'](msg), a, now, last_valid)
+            must |= a in plan['stamp']
+        else:
+            fn, rejected = plan['struct'][a]
+            fn(msg)
+            must |= rejected
+    return msg, must
+
+
+def run_fuzz(rig: Rig, plans: dict, valid_frame, rejected_total, n_examples: int) -> dict:
+    """Hypothesis: each example = valid frame, then bad messages on random topics, then a
+    valid frame again; checks no exception, no non-finite output and counted rejections."""
+    topics = sorted(plans)
+    stats = collections.Counter()
+    strategy = st.lists(st.sampled_from(topics).flatmap(
+        lambda t: st.tuples(st.just(t), mutation_strategy(plans[t]))), min_size=1, max_size=6)
+
+    @settings(max_examples=n_examples, **FUZZ_SETTINGS)
+    @given(batch=strategy)
+    def one_batch(batch):
+        last_valid = valid_frame()
+        rig.spin(0.005)
+        for topic, mutations in batch:
+            msg, must = build_bad(plans[topic], mutations, now_of(rig), last_valid)
+            before = rejected_total()
+            rig.send(topic, msg)
+            after = rejected_total()
+            stats['sent'] += 1
+            if must:
+                stats['must_reject'] += 1
+                assert after > before, f'{topic} {mutations}: bad input not counted'
+            rig.check_clean()
+        valid_frame()
+        rig.spin(0.01)
+        rig.check_clean()
+
+    one_batch()
+    return stats
+
+
+def total(*dicts) -> int:
+    return sum(sum(d.values()) for d in dicts)
+
+
+# --------------------------------------------------------------------------- apron_estimator
+
+def quat_yaw(yaw):
+    return math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)
+
+
+def apron_plans():
+    from geometry_msgs.msg import Point32, TwistStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import ChannelFloat32, Imu, PointCloud, Range
+
+    def imu(t):
+        m = Imu()
+        stamp(m.header, t)
+        m.header.frame_id = 'base_link'
+        m.orientation.w, m.orientation.x, m.orientation.y, m.orientation.z = quat_yaw(0.0)
+        m.linear_acceleration.z = G
+        return m
+
+    def odom(t):
+        m = Odometry()
+        stamp(m.header, t)
+        m.header.frame_id, m.child_frame_id = 'map', 'base_link'
+        p = m.pose.pose.position
+        p.x, p.y, p.z = 3.0, -1.0, 2.0
+        m.pose.pose.orientation.w = 1.0
+        return m
+
+    def velocity(t):
+        m = TwistStamped()
+        stamp(m.header, t)
+        m.header.frame_id = 'map'
+        return m
+
+    def rng(t):
+        m = Range()
+        stamp(m.header, t)
+        m.header.frame_id = 'lidar_link'
+        m.min_range, m.max_range, m.range = 0.05, 40.0, 2.0
+        return m
+
+    def blocks(t, n=1):
+        m = PointCloud()
+        stamp(m.header, t - 0.02)
+        m.header.frame_id = 'camera_optical'
+        m.points = [Point32(x=160.0, y=100.0, z=0.0) for _ in range(n)]
+        m.channels = [ChannelFloat32(name='signature', values=[1.0] * n),
+                      ChannelFloat32(name='width', values=[6.0] * n),
+                      ChannelFloat32(name='height', values=[6.0] * n)]
+        return m
+
+    def drop_channel(m):
+        m.channels = m.channels[:2]
+
+    def short_channel(m):
+        m.channels[1].values = []
+
+    def oversized(m):
+        n = 5000
+        m.points = [Point32(x=float(i % 320), y=float(i % 200), z=0.0) for i in range(n)]
+        m.channels[0].values = [1.0] * n
+        m.channels[1].values = [6.0] * n
+        m.channels[2].values = [6.0] * (n - 1)   # and one short: malformed
+
+    def empty_cloud(m):
+        m.points = []
+        for c in m.channels:
+            c.values = []
+
+    def no_orientation(m):
+        m.orientation_covariance[0] = -1.0
+
+    def zero_quaternion(m):
+        m.orientation.w = 0.0
+
+    def hdr(m):
+        return m.header
+
+    quat_rule = _nonfinite
+    plans = {
+        'vehicle/imu': {
+            'make': imu, 'stamp_header': hdr, 'stamp': ('old', 'future', 'zero', 'max'),
+            'fields': [('orientation.w', 'f64', quat_rule), ('orientation.x', 'f64', quat_rule),
+                       ('orientation.z', 'f64', quat_rule),
+                       ('linear_acceleration.x', 'f64', _beyond_16g),
+                       ('linear_acceleration.z', 'f64', _beyond_16g),
+                       ('angular_velocity.x', 'f64', _never),
+                       ('orientation_covariance[0]', 'f64', lambda v: v == -1.0),
+                       ('linear_acceleration_covariance[4]', 'f64', _never)],
+            'struct': {'no_orientation': (no_orientation, True),
+                       'zero_quaternion': (zero_quaternion, True)}},
+        'vehicle/odom': {
+            'make': odom, 'stamp_header': hdr, 'stamp': ('old', 'future', 'zero', 'max'),
+            'fields': [('pose.pose.position.x', 'f64', _never),
+                       ('pose.pose.position.z', 'f64', _never),
+                       ('twist.twist.linear.x', 'f64', _never),
+                       ('pose.covariance[0]', 'f64', _never)]},
+        'vehicle/velocity': {
+            'make': velocity, 'stamp_header': hdr, 'stamp': ('old', 'future', 'zero', 'max'),
+            'fields': [('twist.linear.x', 'f64', _never), ('twist.linear.z', 'f64', _never)]},
+        'vehicle/range': {
+            'make': rng, 'stamp_header': hdr, 'stamp': ('old', 'future', 'zero', 'max'),
+            # NaN range: the estimator counts it; ±inf: a counted dropout (REP-117)
+            'fields': [('range', 'f32', _nonfinite), ('min_range', 'f32', _never),
+                       ('max_range', 'f32', _never), ('field_of_view', 'f32', _never)]},
+        'pixy/blocks': {
+            'make': blocks, 'stamp_header': hdr, 'stamp': ('old', 'future', 'zero', 'max'),
+            'fields': [('points[0].x', 'f32', _nonfinite), ('points[0].y', 'f32', _nonfinite),
+                       ('points[0].z', 'f32', _never),
+                       ('channels[1].values[0]', 'f32', _nonfinite),
+                       ('channels[2].values[0]', 'f32', _nonfinite),
+                       ('channels[0].values[0]', 'f32', _never)],
+            'struct': {'drop_channel': (drop_channel, True),
+                       'short_channel': (short_channel, True),
+                       'oversized_malformed': (oversized, True),
+                       'empty': (empty_cloud, False)}},
+    }
+    # a position sample only reaches the estimator as an odom + velocity pair of one stamp
+    return plans, {'imu': imu, 'odom': odom, 'velocity': velocity, 'range': rng,
+                   'blocks': blocks}
+
+
+def test_apron_estimator_survives_fuzzed_inputs(ros_context):
+    from apron_estimator.node import ApronEstimatorNode
+    from apron_estimator.types import ApronState
+    from deckland_common.ros_node import RELIABLE_QOS
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PointStamped, TwistStamped, Vector3Stamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Imu, PointCloud, Range
+    from std_msgs.msg import Bool, Float64MultiArray
+
+    context, _ = ros_context
+    ns = f'/fuzz_apron_{next(_NS)}'
+    node = ApronEstimatorNode(context=context, namespace=ns)
+    q = RELIABLE_QOS
+    rig = Rig(context, node, ns,
+              inputs={'vehicle/imu': (Imu, q), 'vehicle/odom': (Odometry, q),
+                      'vehicle/velocity': (TwistStamped, q), 'vehicle/range': (Range, q),
+                      'pixy/blocks': (PointCloud, q)},
+              outputs={'apron/state': (Float64MultiArray, q), 'apron/odom': (Odometry, q),
+                       'apron/relative': (PointStamped, q),
+                       'apron/relative_velocity': (Vector3Stamped, q),
+                       'apron/visible': (Bool, q), 'diagnostics': (DiagnosticArray, q)},
+              inf_ok=lambda topic, path, v: topic == 'apron/state' and path in ('data[1]',
+                                                                                  'data[4]'))
+    try:
+        rig.wait_matched()
+        plans, make = apron_plans()
+
+        def valid_frame():
+            t = now_of(rig)
+            for topic, key in (('vehicle/imu', 'imu'), ('vehicle/odom', 'odom'),
+                               ('vehicle/velocity', 'velocity'), ('vehicle/range', 'range'),
+                               ('pixy/blocks', 'blocks')):
+                rig.send(topic, make[key](t))
+            return t
+
+        def rejected():
+            return total(node.rejected, node.estimator.rejected)
+
+        # a NaN position paired with its velocity (same stamp) reaches the core: counted
+        for field in ('x', 'z'):
+            valid_frame()
+            t = now_of(rig)
+            od, vel = make['odom'](t), make['velocity'](t)
+            setattr(od.pose.pose.position, field, NAN)
+            before = rejected()
+            rig.send('vehicle/odom', od)
+            rig.send('vehicle/velocity', vel)
+            assert rejected() > before
+        stats = run_fuzz(rig, plans, valid_frame, rejected, n_examples=30)
+        assert stats['must_reject'] >= 20, stats
+        assert node.rejected['malformed_cloud'] > 0 and node.rejected['stale_stamp'] > 0
+        assert node.rejected['future_stamp'] > 0 and node.rejected['non_finite'] > 0
+
+        # valid input afterwards: the beacon at the image centre is straight below, 2 m down
+        rig.clear()
+
+        def converged():
+            valid_frame()
+            rig.spin(0.02)
+            msg = rig.last('apron/state')
+            if msg is None:
+                return False
+            s = ApronState.from_array(msg.data)
+            return (s.tracked and s.vertical.valid and abs(s.vertical.height_m - 2.0) < 0.05
+                    and max(map(abs, s.rel_position_m)) < 0.02
+                    and abs(s.apron_position_m[0] - 3.0) < 0.02
+                    and abs(s.apron_position_m[1] + 1.0) < 0.02)
+        assert rig.spin_until(converged, 6.0), rig.last('apron/state')
+        od = rig.last('apron/odom')
+        assert od is not None and od.pose.pose.position.x == pytest.approx(3.0, abs=0.02)
+        rig.check_clean()
+    finally:
+        rig.close()
