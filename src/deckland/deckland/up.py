@@ -4,6 +4,15 @@ Simulation (default): the deck_simulator node stands in for the Pixhawk (MAVLink
 the Pixy (block bytes over UDP); the exit status is the landing's result and
 ``DIR/report.json`` holds the same outcome fields as a campaign run. Hardware
 (``--hardware --mavlink URL --pixy-port DEV``): the same graph without the simulator.
+
+Sequence: start every node (:class:`deckland.orchestrator.Orchestrator`), wait until the
+``wait_for_topics`` of the graph flow, start the in-process bag recorder and wait until it
+receives them (so the bag covers the mission from the trigger on), request OFFBOARD, trigger
+``planner/start_landing``, then watch: node exits are reported (and respawned if the graph says
+so), ``node_kill`` faults of the scenario are injected (SIGKILL at ``start_s`` after the
+trigger), until the outcome, the timeout or SIGINT/SIGTERM. Then every child is stopped
+(within 5 s), the bag is finished, ``report.json`` is written and a summary is printed.
+Exit codes: see :data:`EXIT_CODES` and ``src/deckland/README-up.md``.
 """
 
 from __future__ import annotations
@@ -11,16 +20,30 @@ from __future__ import annotations
 import argparse
 import contextlib
 from importlib import resources
+import itertools
 import json
+import math
 import pathlib
+import shutil
 import signal
 import socket
-import subprocess
 import sys
 import threading
 import time
+from typing import Any
 
 from deckland.orchestrator import Orchestrator, load_graph
+
+EXIT_CODES = {
+    0: 'landed (simulation: on the deck, no crash; hardware: the planner reached LANDED)',
+    1: 'mission failed: no successful landing (missed/crashed/failsafe landing, timeout)',
+    2: 'usage or configuration error (bad scenario, graph, record directory, arguments)',
+    3: 'start-up failed (topics not flowing, a node died while starting)',
+    4: 'the landing could not be triggered (planner/start_landing refused or absent)',
+    130: 'interrupted by SIGINT (128 + 2)',
+    143: 'interrupted by SIGTERM (128 + 15)',
+}
+RUN_MARKERS = ('report.json', 'metadata.yaml')
 
 
 def free_udp_port() -> int:
@@ -34,27 +57,34 @@ def default_graph_path() -> str:
 
 
 class MissionMonitor:
-    """The orchestrator's own ROS node: waits for topics, triggers services, reads outcome."""
+    """The orchestrator's own ROS node: waits for topics, triggers services, reads outcome.
+
+    ``context`` is a private rclpy context without rclpy's signal handlers (``deckland up``
+    owns SIGINT/SIGTERM); the bag recorder borrows it.
+    """
 
     def __init__(self, wait_topics: list[str]):
         from deckland_common.ros_node import LATCHED_QOS
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
         from std_msgs.msg import String
 
         self.context = rclpy.Context()
-        rclpy.init(context=self.context, args=[])
+        rclpy.init(context=self.context, args=[],
+                   signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node('deckland_up', context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.counts = dict.fromkeys(wait_topics, 0)
         self.outcome: dict | None = None
         self.mode = ''
-        self._subs = []
-        for topic in wait_topics:
-            self._subs.append(self._raw_counter(topic))
+        self.vehicle_modes: list[tuple[float, str]] = []   # (monotonic s, autopilot mode)
+        self._subs: dict[str, Any] = {}
         self.node.create_subscription(String, 'sim/outcome', self._on_outcome, LATCHED_QOS)
         self.node.create_subscription(String, 'planner/mode', self._on_mode, LATCHED_QOS)
+        self.node.create_subscription(String, 'vehicle/mode', self._on_vehicle_mode,
+                                      LATCHED_QOS)
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
@@ -62,23 +92,30 @@ class MissionMonitor:
         with contextlib.suppress(Exception):
             self.executor.spin()
 
-    def _raw_counter(self, topic: str):
-        """Count messages on a topic without knowing its type in advance."""
+    def _subscribe_new(self) -> None:
+        """Count messages on each watched topic as soon as it appears (any type, raw)."""
         from deckland_common.ros_node import SENSOR_QOS
 
         from deckland.rosio import import_message_type
 
-        def on_msg(_raw, topic=topic):
-            self.counts[topic] += 1
+        missing = [t for t in self.counts if t not in self._subs]
+        if not missing:
+            return
+        available = {n.lstrip('/'): types for n, types in self.node.get_topic_names_and_types()}
+        for topic in missing:
+            types = available.get(topic.lstrip('/'))
+            if not types:
+                continue
+            try:
+                cls = import_message_type(types[0])
+            except ValueError:
+                continue
 
-        deadline = time.monotonic() + 30.0
-        while time.monotonic() < deadline:
-            for name, types in self.node.get_topic_names_and_types():
-                if name.lstrip('/') == topic.lstrip('/') and types:
-                    cls = import_message_type(types[0])
-                    return self.node.create_subscription(cls, topic, on_msg, SENSOR_QOS, raw=True)
-            time.sleep(0.1)
-        raise TimeoutError(f'topic {topic} never appeared')
+            def on_msg(_raw, topic=topic):
+                self.counts[topic] += 1
+
+            self._subs[topic] = self.node.create_subscription(cls, topic, on_msg, SENSOR_QOS,
+                                                              raw=True)
 
     def _on_outcome(self, msg) -> None:
         try:
@@ -89,13 +126,21 @@ class MissionMonitor:
     def _on_mode(self, msg) -> None:
         self.mode = msg.data
 
-    def wait_flowing(self, timeout_s: float) -> list[str]:
-        """Wait until every watched topic has delivered messages; return the silent ones."""
+    def _on_vehicle_mode(self, msg) -> None:
+        if not self.vehicle_modes or self.vehicle_modes[-1][1] != msg.data:
+            self.vehicle_modes.append((time.monotonic(), msg.data))
+
+    def wait_flowing(self, timeout_s: float, abort=None) -> list[str]:
+        """Wait until every watched topic has delivered messages; return the silent ones.
+
+        ``abort()`` (optional) is polled every 0.1 s; when it returns true the wait ends early.
+        """
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
+            self._subscribe_new()
             silent = [t for t, n in self.counts.items() if n < 3]
-            if not silent:
-                return []
+            if not silent or (abort is not None and abort()):
+                return silent
             time.sleep(0.1)
         return [t for t, n in self.counts.items() if n < 3]
 
@@ -120,13 +165,17 @@ class MissionMonitor:
         self._thread.join(timeout=2.0)
 
 
-def _cmd_up(args: argparse.Namespace) -> int:
+def graph_substitutions(args) -> dict[str, Any]:
+    """The graph YAML's ``{placeholder}`` values for ``args`` (any object with ``scenario``,
+    ``seed``, ``hardware``, ``mavlink``, ``pixy_port`` and ``area``): fresh loopback UDP ports,
+    and the scenario's camera latency and landing area (simulation) or the given ones
+    (hardware). Shared by ``deckland up`` and ``deckland bench``."""
     from deck_simulator.scenario import load_scenario
 
     hardware = bool(args.hardware)
     scenario = None if hardware else load_scenario(args.scenario)
     mav_port, pixy_port = free_udp_port(), free_udp_port()
-    subs = {
+    return {
         'scenario': args.scenario, 'seed': args.seed,
         'mavlink_url': args.mavlink or f'udpout:127.0.0.1:{mav_port}',
         'sim_mavlink_url': f'udpin:127.0.0.1:{mav_port}',
@@ -137,90 +186,294 @@ def _cmd_up(args: argparse.Namespace) -> int:
         'landing_area_x_m': float(scenario.apron.position_m[0]) if scenario else args.area[0],
         'landing_area_y_m': float(scenario.apron.position_m[1]) if scenario else args.area[1],
     }
-    graph = load_graph(args.graph or default_graph_path(), subs, hardware)
+
+
+# --- helpers -------------------------------------------------------------------------------
+
+def prepare_record_dir(path: str) -> pathlib.Path:
+    """The bag/report directory: new, empty, or a previous run (moved to ``DIR.prev``).
+
+    A non-empty directory that does not look like a previous run (no ``report.json`` or
+    ``metadata.yaml``) is refused (ValueError): ``deckland up`` never deletes foreign data.
+    """
+    out = pathlib.Path(path)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f'--record {out}: exists and is not a directory')
+    if out.is_dir() and any(out.iterdir()):
+        if not any((out / m).exists() for m in RUN_MARKERS):
+            raise ValueError(f'--record {out}: not empty and not a previous run; '
+                             'choose another directory')
+        prev = out.with_name(out.name + '.prev')
+        if prev.exists():
+            if not (prev.is_dir() and any((prev / m).exists() for m in RUN_MARKERS)):
+                raise ValueError(f'--record {out}: {prev} is in the way')
+            shutil.rmtree(prev)
+        out.rename(prev)
+    return out
+
+
+def node_kill_faults(scenario) -> list[Any]:
+    """The scenario's ``node_kill`` faults (deck_simulator.faults.NodeKill), by start time."""
+    if scenario is None:
+        return []
+    return sorted((f for f in scenario.faults if f.type == 'node_kill'), key=lambda f: f.start_s)
+
+
+def _fmt(value: Any, unit: str, digits: int = 2) -> str:
+    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+        return f'{value:.{digits}f} {unit}'
+    return 'n/a'
+
+
+def summary_lines(report: dict[str, Any], code: int, record: str | None) -> list[str]:
+    """The short end-of-run summary ``deckland up`` prints (also shown by ``make run``)."""
+    if report.get('interrupted'):
+        outcome = f'interrupted ({report["interrupted"]})'
+    elif report.get('success'):
+        outcome = f'landed ({report.get("reason", "success")})'
+    else:
+        outcome = f'no successful landing ({report.get("reason", "unknown")})'
+    if report.get('crash'):
+        outcome += ', CRASH'
+    elif report.get('safe') and not report.get('success'):
+        outcome += ', safe (no crash)'
+    if report.get('failsafe'):
+        outcome += f'; autopilot failsafe {report["failsafe"]}'
+    lines = [
+        '==== deckland up: summary ====',
+        f'outcome           {outcome}',
+        f'touchdown speed   {_fmt(report.get("touchdown_speed_mps"), "m/s")}',
+        f'horizontal error  {_fmt(report.get("horizontal_error_m"), "m", 3)}',
+        f'time to land      {_fmt(report.get("time_to_land_s"), "s", 1)}',
+    ]
+    if report.get('autopilot_modes'):
+        lines.append('autopilot modes   ' + ' -> '.join(m['mode'] for m in
+                                                        report['autopilot_modes']))
+    for k in report.get('injected_faults', []):
+        lines.append(f'fault injected    node_kill {k["node"]} at {_fmt(k["at_s"], "s", 1)} '
+                     f'after the trigger')
+    for c in report.get('crashed_nodes', []):
+        lines.append(f'node exited       {c["node"]}: {c["description"]} ({c["action"]})')
+    if record:
+        bag = report.get('bag') or {}
+        lines.append(f'bag               {record} ({bag.get("messages", "?")} messages, '
+                     f'{bag.get("topics", "?")} topics)')
+        lines.append(f'report            {pathlib.Path(record) / "report.json"}')
+    else:
+        lines.append('bag, report       not recorded (use --record DIR)')
+    lines.append(f'exit status       {code}: {EXIT_CODES.get(code, "")}')
+    return lines
+
+
+# --- the command ---------------------------------------------------------------------------
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    from deck_simulator.scenario import load_scenario
+
+    def fail(msg: str) -> int:
+        print(f'deckland up: {msg}', file=sys.stderr)
+        return 2
+
+    hardware = bool(args.hardware)
+    if hardware and not (args.mavlink and args.pixy_port):
+        return fail('--hardware needs --mavlink URL and --pixy-port DEV')
+    if not (args.timeout > 0 and args.startup_timeout > 0):
+        return fail('--timeout and --startup-timeout must be > 0')
+    try:
+        scenario = None if hardware else load_scenario(args.scenario)
+        subs = graph_substitutions(args)
+        graph = load_graph(args.graph or default_graph_path(), subs, hardware)
+        record = prepare_record_dir(args.record) if args.record else None
+    except (ValueError, OSError) as exc:
+        return fail(str(exc))
     nodes = graph['nodes']
+    names = {n.name for n in nodes}
+    kills = node_kill_faults(scenario)
+    for f in kills:
+        if f.node not in names:
+            return fail(f'node_kill fault names {f.node!r}, which is not in the graph')
     if args.params:
         for spec in nodes:
             spec.params_file = args.params
     orch = Orchestrator(nodes, stop_timeout_s=5.0)
 
     stop_requested = threading.Event()
+    received: list[int] = []
 
     def on_signal(signum, _frame):
+        received.append(signum)
         stop_requested.set()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     recorder = None
     monitor = None
     result_code = 1
-    report: dict = {}
+    report: dict[str, Any] = {}
+    t_trigger: float | None = None
+    injected: list[dict[str, Any]] = []
     try:
         orch.start()
         monitor = MissionMonitor(graph.get('wait_for_topics', []))
-        silent = monitor.wait_flowing(args.startup_timeout)
-        if silent:
-            orch.log(f'topics not flowing after {args.startup_timeout:.0f} s: {silent}')
-            return 3
+
+        def startup_abort() -> bool:
+            orch.check()
+            return stop_requested.is_set() or any(
+                e.action in ('not respawned', 'gave up') for e in orch.exits)
+
+        silent = monitor.wait_flowing(args.startup_timeout, abort=startup_abort)
+        if stop_requested.is_set():
+            raise _EndRunError
+        if silent or orch.crashed:
+            dead = ', '.join(f'{n} ({c})' for n, c in orch.crashed)
+            orch.log(f'start-up failed: silent topics {silent}' + (f'; exited: {dead}'
+                                                                    if dead else ''))
+            report = {'success': False, 'reason': 'start-up failed', 'silent_topics': silent}
+            result_code = 3
+            raise _EndRunError
         orch.log('all topics flowing')
-        if args.record:
-            recorder = subprocess.Popen(
-                [sys.executable, '-m', 'deckland.cli', 'bag', 'record', '-o', args.record,
-                 '--all'], start_new_session=True)
-            time.sleep(1.0)
+        if record is not None:
+            recorder = _start_recorder(record, monitor, graph.get('wait_for_topics', []), orch)
+        if stop_requested.is_set():
+            raise _EndRunError
         ok, msg = monitor.trigger('bridge/offboard')
         orch.log(f'offboard: {ok} {msg}')
         ok, msg = monitor.trigger('planner/start_landing')
+        t_trigger = time.monotonic()
         orch.log(f'start_landing: {ok} {msg}')
         if not ok:
-            return 4
-        deadline = time.monotonic() + args.timeout
+            report = {'success': False, 'reason': f'start_landing refused: {msg}'}
+            result_code = 4
+            raise _EndRunError
+        pending = list(kills)
+        releases: list[tuple[float, str]] = []
+        deadline = t_trigger + args.timeout
         while time.monotonic() < deadline and not stop_requested.is_set():
+            now = time.monotonic() - t_trigger
+            while pending and now >= pending[0].start_s:
+                f = pending.pop(0)
+                killed = orch.kill(f.node)
+                injected.append({'type': 'node_kill', 'node': f.node, 'at_s': round(now, 3),
+                                 'planned_s': f.start_s, 'killed': killed})
+                if math.isfinite(f.end_s):
+                    releases.append((f.end_s, f.node))
+            for item in [r for r in releases if now >= r[0]]:
+                releases.remove(item)
+                orch.release(item[1])
             orch.check()
             if monitor.outcome is not None:
                 break
             if hardware and monitor.mode == 'LANDED':
                 break
-            time.sleep(0.1)
+            time.sleep(0.05)
         if stop_requested.is_set():
-            orch.log('interrupted')
-            result_code = 130
-        elif monitor.outcome is not None:
+            raise _EndRunError
+        if monitor.outcome is not None:
             report = dict(monitor.outcome)
             result_code = 0 if report.get('success') else 1
             orch.log(f'outcome: {json.dumps(report)}')
         elif hardware and monitor.mode == 'LANDED':
+            report = {'success': True, 'reason': 'planner LANDED', 'final_mode': 'LANDED'}
             result_code = 0
         else:
             report = {'success': False, 'reason': f'timeout after {args.timeout:.0f} s',
                       'final_mode': monitor.mode}
             orch.log(report['reason'])
-        if orch.crashed:
-            report['crashed_nodes'] = [{'node': n, 'status': c} for n, c in orch.crashed]
+    except _EndRunError:
+        pass
     finally:
-        if monitor is not None:
-            monitor.close()
-        if recorder is not None and recorder.poll() is None:
-            recorder.send_signal(signal.SIGINT)
-            try:
-                recorder.wait(timeout=5.0)
-            except subprocess.TimeoutExpired:
-                recorder.kill()
+        if stop_requested.is_set():
+            sig = received[0] if received else signal.SIGINT
+            result_code = 128 + int(sig)
+            report = {'success': False, 'reason': 'interrupted',
+                      'interrupted': signal.Signals(sig).name, **{
+                          k: v for k, v in report.items() if k not in ('success', 'reason')}}
+            orch.log(f'interrupted by {signal.Signals(sig).name}; stopping')
         took = orch.stop()
+        orch.check()
         orch.log(f'stopped all nodes in {took:.2f} s')
+        if recorder is not None:
+            with contextlib.suppress(Exception):
+                recorder.stop()
+        if monitor is not None:
+            modes = [{'t_s': round(t - (t_trigger or t), 3), 'mode': m}
+                     for t, m in monitor.vehicle_modes
+                     if t_trigger is None or t >= t_trigger - 0.5]
+            monitor.close()
+        else:
+            modes = []
         for s, h in old.items():
             signal.signal(s, h)
-    if args.record and not hardware:
-        out = pathlib.Path(args.record)
-        out.mkdir(parents=True, exist_ok=True)
-        report.setdefault('scenario', args.scenario)
-        report.setdefault('seed', args.seed)
-        (out / 'report.json').write_text(json.dumps(report, indent=2) + '\n')
-        orch.log(f'wrote {out / "report.json"}')
+        report = _finish_report(report, args, hardware, orch, injected, modes, record,
+                                result_code)
+        if record is not None:
+            with contextlib.suppress(OSError):
+                record.mkdir(parents=True, exist_ok=True)
+                (record / 'report.json').write_text(json.dumps(report, indent=2) + '\n')
+        print('\n'.join(summary_lines(report, result_code, str(record) if record else None)),
+              flush=True)
     return result_code
 
 
+class _EndRunError(Exception):
+    """Leave the mission early (start-up failure, refused trigger, SIGINT/SIGTERM)."""
+
+
+def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: list[str],
+                    orch: Orchestrator):
+    """The in-process recorder on the monitor's context, subscribed before the trigger."""
+    from deckland.bag import Recorder
+
+    recorder = Recorder(record, all_topics=True, context=monitor.context)
+    recorder.start()
+    deadline = time.monotonic() + 10.0
+    wanted = [t.lstrip('/') for t in wait_topics]
+    while time.monotonic() < deadline:
+        counts = {t.lstrip('/'): n for t, n in recorder.counts.items()}
+        if all(counts.get(t, 0) > 0 for t in wanted):
+            break
+        time.sleep(0.05)
+    else:
+        orch.log('recorder: not every watched topic recorded yet; triggering anyway')
+    orch.log(f'recording {len(recorder.subscribed)} topics to {record}')
+    return recorder
+
+
+def _finish_report(report: dict[str, Any], args, hardware: bool, orch: Orchestrator,
+                   injected: list, modes: list, record: pathlib.Path | None,
+                   code: int) -> dict[str, Any]:
+    report = dict(report)
+    if not hardware:
+        report.setdefault('scenario', args.scenario)
+        report.setdefault('seed', args.seed)
+    report['hardware'] = hardware
+    if 'crash' in report:
+        report['safe'] = not report['crash']
+    # the autopilot's offboard-loss action: the first mode it switched to out of OFFBOARD
+    seq = [m['mode'] for m in modes]
+    left = [b for a, b in itertools.pairwise(seq) if a == 'OFFBOARD' and b != 'OFFBOARD']
+    if left:
+        report['failsafe'] = left[0]
+    report['autopilot_modes'] = modes
+    report['injected_faults'] = injected
+    crashed = [e.as_dict() for e in orch.exits if not e.injected]
+    if crashed:
+        report['crashed_nodes'] = crashed
+    report['exit_status'] = code
+    if record is not None:
+        try:
+            from deckland.bag import bag_info
+            info = bag_info(record)
+            report['bag'] = {'path': str(record), 'messages': info.message_count,
+                             'topics': len(info.topics), 'duration_s': round(info.duration_s, 3)}
+        except Exception as exc:   # reported, never fatal at the end of a run
+            report['bag'] = {'path': str(record), 'error': str(exc)}
+    return report
+
+
 def register(sub) -> None:
-    p = sub.add_parser('up', help='start the node graph and fly the mission (default: simulated)')
+    p = sub.add_parser('up', help='start the node graph and fly the mission (default: simulated)',
+                       epilog='exit status: ' + '; '.join(f'{k} {v}' for k, v in
+                                                          EXIT_CODES.items()))
     p.add_argument('--scenario', default='paper', help='built-in name or YAML file (simulation)')
     p.add_argument('--seed', type=int, default=1)
     p.add_argument('--hardware', action='store_true', help='fly real hardware (no simulator)')
