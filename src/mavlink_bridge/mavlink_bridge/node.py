@@ -307,12 +307,17 @@ class MavlinkBridgeNode(Node):
                                           (q.w, q.x, q.y, q.z))
 
     def _on_thrust(self, msg: WrenchStamped) -> None:
+        stamp_s = stamp_to_s(msg.header.stamp)
         with self._lock:
-            sp = self.core.on_thrust_command(self._now(), stamp_to_s(msg.header.stamp),
-                                             msg.wrench.force.z)
+            sp = self.core.on_thrust_command(self._now(), stamp_s, msg.wrench.force.z)
             if sp is not None:
                 ts, tc = self._target()
-                self._send(self.conn.mav.set_attitude_target_send, self._boot_ms(), ts, tc,
+                # [bench hook] time_boot_ms = the command's source stamp (control/thrust
+                # header = the apron state's t_s) in ms mod 2^32, so a MAVLink tap maps each
+                # setpoint back to its camera frame (deckland bench latency, README-bench.md).
+                # The autopilots (PX4, ArduPilot, the simulator) ignore this field here.
+                boot_ms = round(stamp_s * 1000.0) & 0xFFFFFFFF
+                self._send(self.conn.mav.set_attitude_target_send, boot_ms, ts, tc,
                            sp.type_mask, list(sp.q_ned_frd), 0.0, 0.0, 0.0, sp.thrust_norm)
 
     def _on_enabled(self, msg: Bool) -> None:
