@@ -294,11 +294,37 @@ def build_bad(plan, mutations, now: float, last_valid: float):
     return msg, must
 
 
+def sweep(rig: Rig, plans: dict, valid_frame, rejected_total, stats) -> None:
+    """Every single corruption once (NaN, ±inf, ±1e308 in every field, every bad stamp, every
+    structural corruption), each after a valid frame: deterministic coverage."""
+    cases = []
+    for topic, plan in sorted(plans.items()):
+        for i in range(len(plan['fields'])):
+            cases += [(topic, [('field', i, v)]) for v in (NAN, INF, -INF, 1e308, -1e308)]
+        cases += [(topic, [('stamp', k, None)]) for k in plan.get('stamp') or ()]
+        cases += [(topic, [('struct', k, None)]) for k in sorted(plan.get('struct') or ())]
+    last_valid = valid_frame()
+    for i, (topic, mutations) in enumerate(cases):
+        if i % 4 == 3:
+            last_valid = valid_frame()
+        msg, must = build_bad(plans[topic], mutations, now_of(rig), last_valid)
+        before = rejected_total()
+        rig.send(topic, msg)
+        stats['sent'] += 1
+        if must:
+            stats['must_reject'] += 1
+            assert rejected_total() > before, f'{topic} {mutations}: bad input not counted'
+        rig.check_clean()
+    rig.spin(0.01)
+    rig.check_clean()
+
+
 def run_fuzz(rig: Rig, plans: dict, valid_frame, rejected_total, n_examples: int) -> dict:
     """Hypothesis: each example = valid frame, then bad messages on random topics, then a
     valid frame again; checks no exception, no non-finite output and counted rejections."""
     topics = sorted(plans)
     stats = collections.Counter()
+    sweep(rig, plans, valid_frame, rejected_total, stats)
     strategy = st.lists(st.sampled_from(topics).flatmap(
         lambda t: st.tuples(st.just(t), mutation_strategy(plans[t]))), min_size=1, max_size=6)
 
@@ -522,6 +548,294 @@ def test_apron_estimator_survives_fuzzed_inputs(ros_context):
         assert rig.spin_until(converged, 6.0), rig.last('apron/state')
         od = rig.last('apron/odom')
         assert od is not None and od.pose.pose.position.x == pytest.approx(3.0, abs=0.02)
+        rig.check_clean()
+    finally:
+        rig.close()
+
+
+# --------------------------------------------------------------------------- apron_state_v1
+
+#: fields of apron_state_v1 each consumer reads (an inf there must be refused; NaN anywhere is)
+PLANNER_READS = frozenset({0, 5, 6, 15, 16, 17, 18, 20, 21, 24, 27, 28})
+DOB_READS = frozenset({0, 20, 21, 22, 23, 26, 27})
+
+
+def apron_state_plan(reads, height_m=2.0, z_m=2.0):
+    from apron_estimator.types import APRON_STATE_LAYOUT, ApronState, VerticalState
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+    def make(t):
+        vert = VerticalState(True, height_m, 0.0, z_m, 0.0, z_m - height_m, 0.0, 0.0, 0, 0.0)
+        st_ = ApronState(t, False, False, math.inf, (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
+                         (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), vert)
+        m = Float64MultiArray()
+        m.layout.dim = [MultiArrayDimension(label=APRON_STATE_LAYOUT, size=29, stride=29)]
+        m.data = st_.to_array()
+        return m
+
+    def rule(i):
+        if i == 0:
+            return lambda v: True   # t_s far from now: stale or in the future
+        return lambda v: math.isnan(v) or (math.isinf(v) and i in reads)
+
+    def relabel(m):
+        m.layout.dim[0].label = 'apron_state_v0'
+
+    def resize(n):
+        def fn(m):
+            m.data = (list(m.data) + [0.0] * n)[:n]
+        return fn
+
+    return {'make': make, 'stamp_header': None, 'stamp': (),
+            'fields': [(f'data[{i}]', 'f64', rule(i)) for i in range(29)],
+            'struct': {'wrong_label': (relabel, True), 'empty': (resize(0), True),
+                       'short': (resize(28), True), 'long': (resize(30), True),
+                       'oversized': (resize(100_000), True),
+                       'no_layout': (lambda m: setattr(m.layout, 'dim', []), False)}}
+
+
+def quaternion_rule(component):
+    """Must the node refuse q with this component replaced (|‖q‖ − 1| > 0.05 or non-finite)?"""
+    def rule(v):
+        w, x = (v, 0.0) if component == 'w' else (1.0, v)
+        n = math.sqrt(w * w + x * x) if math.isfinite(v) else math.inf
+        return not abs(n - 1.0) <= 0.05
+    return rule
+
+
+def imu_plan(rule_for_accel=_never):
+    from sensor_msgs.msg import Imu
+
+    def make(t):
+        m = Imu()
+        stamp(m.header, t)
+        m.header.frame_id = 'base_link'
+        m.orientation.w = 1.0
+        m.linear_acceleration.z = G
+        return m
+
+    def no_orientation(m):
+        m.orientation_covariance[0] = -1.0
+
+    return {'make': make, 'stamp_header': lambda m: m.header,
+            'stamp': ('old', 'future', 'zero', 'max', 'backwards'),
+            'fields': [('orientation.w', 'f64', quaternion_rule('w')),
+                       ('orientation.x', 'f64', quaternion_rule('x')),
+                       ('orientation.y', 'f64', quaternion_rule('x')),
+                       ('linear_acceleration.z', 'f64', rule_for_accel),
+                       ('angular_velocity.z', 'f64', _never),
+                       ('orientation_covariance[0]', 'f64', lambda v: v == -1.0)],
+            'struct': {'no_orientation': (no_orientation, True)}}
+
+
+def call_trigger(rig, client, timeout_s=3.0):
+    from std_srvs.srv import Trigger
+    assert rig.spin_until(lambda: client.service_is_ready(), timeout_s)
+    future = client.call_async(Trigger.Request())
+    assert rig.spin_until(future.done, timeout_s)
+    return future.result()
+
+
+# --------------------------------------------------------------------------- landing_planner
+
+def test_landing_planner_survives_fuzzed_inputs(ros_context):
+    from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped, QuaternionStamped, TwistStamped
+    from landing_planner.node import LandingPlannerNode
+    from nav_msgs.msg import Odometry
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import Bool, Float64MultiArray, String
+    from std_srvs.srv import Trigger
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    context, _ = ros_context
+    ns = f'/fuzz_planner_{next(_NS)}'
+    node = LandingPlannerNode(context=context, namespace=ns, parameter_overrides=[
+        Parameter('landing_area_x_m', value=5.0), Parameter('landing_area_y_m', value=0.0),
+        Parameter('xy_ki', value=0.0)])
+    q = RELIABLE_QOS
+    rig = Rig(context, node, ns,
+              inputs={'apron/state': (Float64MultiArray, q), 'vehicle/odom': (Odometry, q),
+                      'vehicle/velocity': (TwistStamped, q)},
+              outputs={'control/attitude': (QuaternionStamped, q),
+                       'planner/reference': (MultiDOFJointTrajectory, q),
+                       'planner/setpoint': (PoseStamped, q), 'planner/mode': (String, LATCHED_QOS),
+                       'control/enabled': (Bool, LATCHED_QOS),
+                       'diagnostics': (DiagnosticArray, q)})
+    start = rig.helper.create_client(Trigger, 'planner/start_landing')
+    try:
+        rig.wait_matched()
+
+        def odom(t):
+            m = Odometry()
+            stamp(m.header, t)
+            m.header.frame_id, m.child_frame_id = 'map', 'base_link'
+            m.pose.pose.position.z = 2.0
+            m.pose.pose.orientation.w = 1.0
+            return m
+
+        def velocity(t):
+            m = TwistStamped()
+            stamp(m.header, t)
+            m.header.frame_id = 'map'
+            return m
+
+        def wrong_frame(m):
+            m.header.frame_id = 'odom'
+
+        stamps = ('old', 'future', 'zero', 'max', 'backwards')
+        plans = {
+            'apron/state': apron_state_plan(PLANNER_READS),
+            'vehicle/odom': {
+                'make': odom, 'stamp_header': lambda m: m.header, 'stamp': stamps,
+                'fields': [('pose.pose.position.x', 'f64', _nonfinite),
+                           ('pose.pose.position.z', 'f64', _nonfinite),
+                           ('pose.pose.orientation.w', 'f64', quaternion_rule('w')),
+                           ('pose.pose.orientation.z', 'f64', quaternion_rule('x')),
+                           ('twist.twist.linear.x', 'f64', _never),
+                           ('pose.covariance[35]', 'f64', _never)],
+                'struct': {'wrong_frame': (wrong_frame, True)}},
+            'vehicle/velocity': {
+                'make': velocity, 'stamp_header': lambda m: m.header, 'stamp': stamps,
+                'fields': [('twist.linear.x', 'f64', _nonfinite),
+                           ('twist.linear.z', 'f64', _nonfinite),
+                           ('twist.angular.z', 'f64', _never)],
+                'struct': {'wrong_frame': (wrong_frame, True)}},
+        }
+
+        def valid_frame():
+            t = now_of(rig)
+            rig.send('vehicle/odom', odom(t))
+            rig.send('vehicle/velocity', velocity(t))
+            rig.send('apron/state', plans['apron/state']['make'](t))
+            return t
+
+        stats = run_fuzz(rig, plans, valid_frame, lambda: total(node.rejected), n_examples=30)
+        assert stats['must_reject'] >= 20, stats
+        for key in ('non_finite', 'bad_size', 'bad_layout', 'bad_frame', 'out_of_order',
+                    'future_stamp', 'bad_quaternion'):
+            assert node.rejected[key] > 0, (key, node.rejected)
+        assert rig.out['control/attitude'], 'no command while fed valid frames'
+
+        # valid input afterwards: start landing toward an area 5 m east of a vehicle at rest
+        # at the origin: APPROACH, nose down (pitch > 0, within the tilt limit), no roll
+        res = call_trigger(rig, start)
+        assert res.success, res.message
+        rig.clear()
+        assert rig.spin_until(lambda: (valid_frame(), rig.spin(0.01),
+                                       len(rig.out['control/attitude']) > 20)[-1], 5.0)
+        assert node.planner.mode.name == 'APPROACH'
+        for msg in rig.out['control/attitude'][-10:]:
+            qq = msg.quaternion
+            roll = math.atan2(2.0 * (qq.w * qq.x + qq.y * qq.z),
+                              1.0 - 2.0 * (qq.x * qq.x + qq.y * qq.y))
+            pitch = math.asin(max(-1.0, min(1.0, 2.0 * (qq.w * qq.y - qq.z * qq.x))))
+            assert abs(roll) < 1e-6 and 0.0 < pitch <= node.horizontal.params.max_tilt_rad + 1e-9
+        ref = rig.out['planner/reference'][-1].points[0]
+        assert ref.transforms[0].translation.x > 0.0 and ref.velocities[0].linear.x > 0.0
+        rig.check_clean()
+    finally:
+        rig.helper.destroy_client(start)
+        rig.close()
+
+
+# --------------------------------------------------------------------------- dob_altitude
+
+def test_dob_altitude_survives_fuzzed_inputs(ros_context):
+    from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
+    from diagnostic_msgs.msg import DiagnosticArray
+    from dob_altitude.node import DobAltitudeNode
+    from geometry_msgs.msg import Transform, Twist, Vector3Stamped, WrenchStamped
+    from sensor_msgs.msg import Imu
+    from std_msgs.msg import Bool, Float64MultiArray
+    from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
+
+    context, _ = ros_context
+    ns = f'/fuzz_dob_{next(_NS)}'
+    node = DobAltitudeNode(context=context, namespace=ns)
+    q = RELIABLE_QOS
+    rig = Rig(context, node, ns,
+              inputs={'apron/state': (Float64MultiArray, q),
+                      'planner/reference': (MultiDOFJointTrajectory, q),
+                      'vehicle/imu': (Imu, q), 'control/enabled': (Bool, LATCHED_QOS)},
+              outputs={'control/thrust': (WrenchStamped, q),
+                       'altitude/observer': (Vector3Stamped, q),
+                       'diagnostics': (DiagnosticArray, q)})
+    try:
+        rig.wait_matched()
+
+        def reference(t):
+            m = MultiDOFJointTrajectory()
+            stamp(m.header, t)
+            m.header.frame_id = 'map'
+            m.joint_names = ['relative']
+            tf = Transform()
+            tf.translation.z = 2.0
+            tf.rotation.w = 1.0
+            m.points = [MultiDOFJointTrajectoryPoint(transforms=[tf], velocities=[Twist()],
+                                                     accelerations=[Twist()])]
+            return m
+
+        def no_points(m):
+            m.points = []
+
+        def two_points(m):
+            m.points = [m.points[0], m.points[0]]
+
+        def no_transform(m):
+            m.points[0].transforms = []
+
+        def no_acceleration(m):
+            m.points[0].accelerations = []
+
+        def bad_joint(m):
+            m.joint_names = ['sideways']
+
+        stamps = ('old', 'future', 'zero', 'max', 'backwards')
+        plans = {
+            'apron/state': apron_state_plan(DOB_READS, height_m=1.8),
+            'planner/reference': {
+                'make': reference, 'stamp_header': lambda m: m.header, 'stamp': stamps,
+                'fields': [('points[0].transforms[0].translation.z', 'f64', _nonfinite),
+                           ('points[0].velocities[0].linear.z', 'f64', _nonfinite),
+                           ('points[0].accelerations[0].linear.z', 'f64', _nonfinite),
+                           ('points[0].transforms[0].translation.x', 'f64', _never)],
+                'struct': {'no_points': (no_points, True), 'two_points': (two_points, True),
+                           'no_transform': (no_transform, True),
+                           'no_acceleration': (no_acceleration, True),
+                           'bad_joint': (bad_joint, True),
+                           'no_joint': (lambda m: setattr(m, 'joint_names', []), False)}},
+            'vehicle/imu': imu_plan(),
+        }
+        # the apron state's t_s must also strictly increase (a repeat is refused)
+        plans['apron/state']['struct']['repeat'] = (lambda m: None, False)
+
+        def valid_frame():
+            t = now_of(rig)
+            rig.send('vehicle/imu', plans['vehicle/imu']['make'](t))
+            rig.send('planner/reference', reference(t))
+            rig.send('apron/state', plans['apron/state']['make'](t))
+            return t
+
+        rig.send('control/enabled', Bool(data=True))
+        stats = run_fuzz(rig, plans, valid_frame, lambda: total(node.rejected), n_examples=30)
+        assert stats['must_reject'] >= 20, stats
+        for key in ('non_finite', 'bad_size', 'bad_layout', 'out_of_order', 'future_stamp',
+                    'bad_frame', 'bad_quaternion'):
+            assert node.rejected[key] > 0, (key, node.rejected)
+        assert rig.out['control/thrust'], 'no thrust while fed valid frames'
+
+        # valid input afterwards: hovering 0.2 m below the reference at rest, law (16) asks
+        # for more than the hover thrust m g, within the limits; the observer is finite
+        rig.clear()
+        assert rig.spin_until(lambda: (valid_frame(), rig.spin(0.01),
+                                       len(rig.out['control/thrust']) > 10)[-1], 5.0)
+        mg = node.cfg['mass_kg'] * G
+        for msg in rig.out['control/thrust'][-5:]:
+            assert mg < msg.wrench.force.z <= node.cfg['thrust_max_n']
+        assert rig.out['altitude/observer'][-1].vector.z == pytest.approx(-0.2, abs=1e-6) or \
+            rig.out['altitude/observer'][-1].vector.z == pytest.approx(0.2, abs=1e-6)
         rig.check_clean()
     finally:
         rig.close()
