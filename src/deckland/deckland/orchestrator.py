@@ -364,6 +364,8 @@ class Orchestrator:
             code = p.proc.poll()
             if code is not None and p.respawn_at is None and len(p.exit_codes) < len(p.pids):
                 p.exit_codes.append(code)
+                if self.stopping and not p.kill_pending:
+                    continue       # stopped by stop(): expected, not an event
                 p.join_output(0.2)
                 injected = p.kill_pending
                 p.kill_pending = False
