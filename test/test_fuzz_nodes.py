@@ -21,7 +21,9 @@ from __future__ import annotations
 import array
 import collections
 import itertools
+import json
 import math
+import socket
 import threading
 import time
 import traceback
@@ -838,4 +840,196 @@ def test_dob_altitude_survives_fuzzed_inputs(ros_context):
             rig.out['altitude/observer'][-1].vector.z == pytest.approx(0.2, abs=1e-6)
         rig.check_clean()
     finally:
+        rig.close()
+
+
+# --------------------------------------------------------------------------- pixy_driver
+
+PIXY_ERRORS = ('checksum_errors', 'out_of_range', 'resyncs', 'bytes_dropped', 'orphan_blocks',
+               'overflow_blocks', 'bad_input')
+
+
+def _pixy_datagrams():
+    """Random bytes, and valid frames cut short, bit-flipped, repeated or glued to garbage."""
+    from pixy_driver.protocol import encode_frame
+
+    block = st.tuples(st.integers(1, 7), st.integers(0, 319), st.integers(0, 199),
+                      st.integers(1, 320), st.integers(1, 200))
+    frame = st.lists(block, min_size=1, max_size=5).map(encode_frame)
+
+    def flip(args):
+        data, i, bit = args
+        b = bytearray(data)
+        k = len(b) - 1 - (i % 10)          # a byte of the last block's five data words
+        b[k] ^= 1 << bit
+        return ('corrupt', bytes(b))
+
+    return st.one_of(
+        st.binary(max_size=600).map(lambda d: ('random', d)),
+        st.tuples(frame, st.integers(1, 40)).map(lambda a: ('truncated', a[0][:-a[1]])),
+        st.tuples(frame, st.integers(0, 1000), st.integers(0, 7)).map(flip),
+        st.tuples(st.binary(min_size=1, max_size=50), frame).map(
+            lambda a: ('garbage_prefix', a[0] + a[1])),
+        st.sampled_from([('syncs', b'\x55\xaa' * 300), ('zeros', bytes(512)),
+                         ('swapped_sync', b'\xaa\x55' * 100), ('huge', b'\xff' * 60_000),
+                         ('empty_frame', encode_frame([])), ('one_byte', b'\x55')]))
+
+
+@pytest.mark.parametrize('datagram_is_frame', [True, False])
+def test_pixy_driver_survives_random_datagrams(ros_context, datagram_is_frame):
+    from deckland_common.ros_node import RELIABLE_QOS
+    from diagnostic_msgs.msg import DiagnosticArray
+    from pixy_driver.node import PixyDriverNode
+    from pixy_driver.protocol import encode_frame
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud
+
+    context, _ = ros_context
+    ns = f'/fuzz_pixy_{next(_NS)}'
+    node = PixyDriverNode(context=context, namespace=ns, parameter_overrides=[
+        Parameter('transport', value='udp'), Parameter('udp_port', value=0),
+        Parameter('udp_datagram_is_frame', value=datagram_is_frame),
+        Parameter('diagnostics_period_s', value=0.2)])
+    thread_errors = []
+    handle = node._handle
+
+    def checked_handle(data):   # the reader thread swallows exceptions: record them
+        try:
+            handle(data)
+        except Exception:
+            thread_errors.append(traceback.format_exc())
+            raise
+
+    node._handle = checked_handle
+    q = RELIABLE_QOS
+    rig = Rig(context, node, ns, inputs={},
+              outputs={'pixy/blocks': (PointCloud, q), 'pixy/diagnostics': (DiagnosticArray, q)})
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    addr = ('127.0.0.1', node.udp_port_bound)
+    stats = collections.Counter()
+
+    def send(data):
+        n0 = node.parser.bytes_in
+        tx.sendto(data, addr)
+        assert rig.spin_until(lambda: node.parser.bytes_in >= n0 + len(data), 2.0)
+
+    def errors():
+        s = node.parser.stats()
+        return sum(s[k] for k in PIXY_ERRORS)
+
+    try:
+        rig.wait_matched()
+
+        @settings(max_examples=60, **FUZZ_SETTINGS)
+        @given(batch=st.lists(_pixy_datagrams(), min_size=1, max_size=5))
+        def one_batch(batch):
+            for kind, data in batch:
+                before = errors()
+                send(data)
+                stats[kind] += 1
+                if kind == 'corrupt' and datagram_is_frame:
+                    assert errors() > before, 'corrupted block not counted'
+            rig.spin(0.005)
+            assert not thread_errors, thread_errors[0]
+            rig.check_clean()
+
+        one_batch()
+        assert stats['corrupt'] > 0 and stats['random'] > 0
+        assert node.parser.checksum_errors > 0 and errors() > 0
+        for msg in rig.out['pixy/blocks']:    # whatever got through is a well-formed frame
+            ch = {c.name: list(c.values) for c in msg.channels}
+            assert sorted(ch) == ['height', 'signature', 'width']
+            assert all(len(v) == len(msg.points) for v in ch.values())
+            assert all(0 <= p.x <= 319 and 0 <= p.y <= 199 for p in msg.points)
+
+        # valid frames afterwards come out exactly (stream mode: a frame ends at the next one)
+        rig.clear()
+        frame = encode_frame([(1, 160, 100, 12, 10), (2, 5, 7, 3, 4)])
+        for _ in range(3):
+            send(frame)
+        assert rig.spin_until(lambda: len(rig.out['pixy/blocks']) >= 2, 3.0)
+        msg = rig.out['pixy/blocks'][-1]
+        ch = {c.name: list(c.values) for c in msg.channels}
+        got = [(int(s), int(p.x), int(p.y), int(w), int(h)) for p, s, w, h in
+               zip(msg.points, ch['signature'], ch['width'], ch['height'], strict=True)]
+        assert got == [(1, 160, 100, 12, 10), (2, 5, 7, 3, 4)]
+        assert rig.spin_until(lambda: rig.out['pixy/diagnostics'], 2.0)
+        diag = {kv.key: kv.value for kv in rig.out['pixy/diagnostics'][-1].status[0].values}
+        assert int(diag['checksum_errors']) > 0
+        rig.check_clean()
+        assert not thread_errors, thread_errors[0]
+    finally:
+        tx.close()
+        rig.close()
+
+
+# --------------------------------------------------------------------------- deck_simulator
+
+def _free_udp_socket():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(('127.0.0.1', 0))
+    s.setblocking(False)
+    return s
+
+
+def test_deck_simulator_survives_bad_modes_and_mavlink_garbage(ros_context):
+    from deck_simulator.node import DeckSimulatorNode
+    from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
+    from nav_msgs.msg import Odometry
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import String
+
+    context, _ = ros_context
+    ns = f'/fuzz_sim_{next(_NS)}'
+    pixy_sink = _free_udp_socket()         # the simulated Pixy's datagrams land here
+    probe = _free_udp_socket()
+    mav_port = probe.getsockname()[1]
+    probe.close()
+    node = DeckSimulatorNode(context=context, namespace=ns, parameter_overrides=[
+        Parameter('mavlink_url', value=f'udpin:127.0.0.1:{mav_port}'),
+        Parameter('pixy_udp_port', value=pixy_sink.getsockname()[1])])
+    rig = Rig(context, node, ns, inputs={'planner/mode': (String, LATCHED_QOS)},
+              outputs={'sim/truth/vehicle': (Odometry, RELIABLE_QOS),
+                       'sim/truth/apron': (Odometry, RELIABLE_QOS),
+                       'sim/outcome': (String, LATCHED_QOS)})
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        rig.wait_matched()
+        modes = st.one_of(st.text(max_size=40), st.sampled_from(
+            ['', '   ', '\n', 'x' * 100_000, 'ΔESCEND', 'search', ' SEARCH ', 'NaN', 'inf']))
+        mav = st.one_of(st.binary(max_size=300),
+                        st.binary(max_size=300).map(lambda d: b'\xfd' + d),   # MAVLink 2 STX
+                        st.binary(max_size=300).map(lambda d: b'\xfe' + d))   # MAVLink 1 STX
+
+        @settings(max_examples=40, **FUZZ_SETTINGS)
+        @given(mode=modes, garbage=st.lists(mav, max_size=4))
+        def one(mode, garbage):
+            before = node.sim.rejected['bad_mode']
+            rig.send('planner/mode', String(data=mode))
+            if not mode.strip():
+                assert node.sim.rejected['bad_mode'] == before + 1
+            for data in garbage:
+                tx.sendto(data, ('127.0.0.1', mav_port))
+            rig.spin(0.01)
+            rig.check_clean()
+            assert node.thread_errors == 0
+
+        one()
+        assert rig.spin_until(lambda: node.emulator.rejected['bad_data'] > 0, 2.0)
+        assert node.sim.rejected['bad_mode'] > 0
+        # the world still runs and the mode still counts: a search entry and a trigger
+        rig.clear()
+        searches = node.sim.searches
+        rig.send('planner/mode', String(data='HOLD'))
+        rig.send('planner/mode', String(data='SEARCH'))
+        assert node.sim.searches == searches + 1 and node.sim.trigger_t_s is not None
+        assert rig.spin_until(lambda: len(rig.out['sim/truth/vehicle']) > 5, 3.0)
+        for text in [m.data for m in rig.out['sim/outcome']]:
+            assert 'NaN' not in text and 'Infinity' not in text
+            json.loads(text)
+        rig.check_clean()
+        assert node.thread_errors == 0
+    finally:
+        tx.close()
+        pixy_sink.close()
         rig.close()
