@@ -404,7 +404,6 @@ class StreamRecorder:
     def __init__(self, node):
         from apron_estimator.types import APRON_STATE_V1_FIELDS, APRON_STATE_V1_LEN
         from deckland_common.ros_node import SENSOR_QOS, stamp_to_s
-        from geometry_msgs.msg import WrenchStamped
         from sensor_msgs.msg import PointCloud
         from std_msgs.msg import Float64MultiArray
 
@@ -412,7 +411,6 @@ class StreamRecorder:
         i_cam = APRON_STATE_V1_FIELDS.index('camera_stamp_s')
         self.frames: list[float] = []
         self.apron: list[tuple[float, float]] = []
-        self.thrust: list[tuple[float, float]] = []
         self.bad = 0
 
         def on_blocks(msg):
@@ -425,13 +423,9 @@ class StreamRecorder:
             else:
                 self.bad += 1
 
-        def on_thrust(msg):
-            self.thrust.append((time.time(), stamp_to_s(msg.header.stamp)))
-
         self._subs = [
             node.create_subscription(PointCloud, 'pixy/blocks', on_blocks, SENSOR_QOS),
             node.create_subscription(Float64MultiArray, 'apron/state', on_apron, SENSOR_QOS),
-            node.create_subscription(WrenchStamped, 'control/thrust', on_thrust, SENSOR_QOS),
         ]
 
 
@@ -548,6 +542,11 @@ def _cmd_latency(args: argparse.Namespace) -> int:
         with open(args.out, 'w') as fh:
             fh.write(text)
     print(format_table(report))
+    if report['duration_s'] < 0.9 * args.duration:
+        landing = report.get('landing') or {}
+        print(f"note: the window ended after {report['duration_s']:.1f} s of "
+              f"{args.duration:g} s: the simulator reported an outcome "
+              f"({landing.get('reason')}); the loop was no longer busy")
     if args.out:
         print(f'wrote {args.out}')
     if status:
