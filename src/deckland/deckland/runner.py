@@ -153,7 +153,7 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
             mode = out.mode
             roll_cmd, pitch_cmd = horizontal.step(out.setpoint_m, out.velocity_ff_mps,
                                                   (pos[0], pos[1]), (vel[0], vel[1]), yaw,
-                                                  dt_ctrl)
+                                                  dt_ctrl, precise=out.precise_xy)
             # --- dob_altitude ------------------------------------------------------------
             vert = apron.vertical
             new_frame = parse_vertical_frame(out.vertical_mode)

@@ -44,6 +44,8 @@ EXIT_CODES = {
     143: 'interrupted by SIGTERM (128 + 15)',
 }
 RUN_MARKERS = ('report.json', 'metadata.yaml')
+#: recorded hover before the landing trigger (s)
+PRE_TRIGGER_S = 1.0
 
 
 def free_udp_port() -> int:
@@ -434,6 +436,7 @@ def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: 
         time.sleep(0.05)
     else:
         orch.log('recorder: not every watched topic recorded yet; triggering anyway')
+    time.sleep(PRE_TRIGGER_S)   # a little of the hover before the trigger, for the plots
     orch.log(f'recording {len(recorder.subscribed)} topics to {record}')
     return recorder
 

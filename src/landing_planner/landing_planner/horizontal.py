@@ -35,6 +35,12 @@ class HorizontalParams:
     kp: float = 3.0             # 1/s²  position error → acceleration
     kd: float = 3.0             # 1/s   velocity error → acceleration
     ki: float = 0.8             # 1/s³  integral of the position error → acceleration
+    # 'precise' gains, used over the deck (DESCEND/FINAL): stiffer against gusts at touchdown.
+    # The softer gains above fly APPROACH/ALIGN/SEARCH, where aggressive tilts swing the
+    # camera off the beacon (campaign evidence in the README).
+    precise_kp: float = 8.0
+    precise_kd: float = 5.5
+    precise_ki: float = 2.0
     max_accel_mps2: float = 3.0
     max_tilt_rad: float = math.radians(20.0)
     max_integral_accel_mps2: float = 1.0   # clamp of |k_i ∫e| (each axis)
@@ -87,13 +93,15 @@ class HorizontalController:
     @property
     def integral_accel_mps2(self) -> tuple[float, float]:
         """The integral term k_i ∫e_p currently applied (world ENU)."""
-        return self.params.ki * self._ix, self.params.ki * self._iy
+        return self._ix, self._iy
 
     def step(self, setpoint_m: tuple[float, float], velocity_ff_mps: tuple[float, float],
              position_m: tuple[float, ...], velocity_mps: tuple[float, ...], yaw_rad: float,
-             dt_s: float) -> tuple[float, float]:
+             dt_s: float, precise: bool = False) -> tuple[float, float]:
         """One control step; returns (roll_rad, pitch_rad) in the FLU convention.
 
+        ``precise`` selects the stiffer gain set (over the deck). The integral is stored as
+        the acceleration k_i ∫e it contributes, so switching gains is bumpless.
         Non-finite inputs are rejected (counted, the last command is returned).
         """
         try:
@@ -112,12 +120,16 @@ class HorizontalController:
             self.rejected['bad_dt'] += 1
             return self._last
         p = self.params
+        if precise:
+            kp, kd, ki = p.precise_kp, p.precise_kd, p.precise_ki
+        else:
+            kp, kd, ki = p.kp, p.kd, p.ki
         ex, ey = sx - px, sy - py
         # a_cmd = k_p e_p + k_d (v_ff − v) + k_i ∫e_p
-        ux = p.kp * ex + p.kd * (fx - vx)
-        uy = p.kp * ey + p.kd * (fy - vy)
-        ax = ux + p.ki * self._ix
-        ay = uy + p.ki * self._iy
+        ux = kp * ex + kd * (fx - vx)
+        uy = kp * ey + kd * (fy - vy)
+        ax = ux + self._ix
+        ay = uy + self._iy
         norm = math.hypot(ax, ay)
         saturated = norm > self._a_lim
         if saturated:
@@ -126,10 +138,10 @@ class HorizontalController:
             ay *= k
         # conditional integration: only near the setpoint (the integrator is for steady
         # disturbances, not for the transit) and not while saturated outward
-        if (p.ki > 0.0 and ex * ex + ey * ey < p.integral_zone_m * p.integral_zone_m
+        if (ki > 0.0 and ex * ex + ey * ey < p.integral_zone_m * p.integral_zone_m
                 and not (saturated and ex * ax + ey * ay > 0.0)):
-            i_max = p.max_integral_accel_mps2 / p.ki
-            self._ix = max(-i_max, min(i_max, self._ix + ex * dt_s))
-            self._iy = max(-i_max, min(i_max, self._iy + ey * dt_s))
+            i_max = p.max_integral_accel_mps2
+            self._ix = max(-i_max, min(i_max, self._ix + ki * ex * dt_s))
+            self._iy = max(-i_max, min(i_max, self._iy + ki * ey * dt_s))
         self._last = accel_to_tilt(ax, ay, yaw, p.gravity_mps2)
         return self._last

@@ -110,6 +110,9 @@ HORIZONTAL_FIELDS: dict[str, tuple[str, str]] = {
     'xy_kp': ('kp', 'horizontal PID k_p (m/s^2 per m)'),
     'xy_kd': ('kd', 'horizontal PID k_d (m/s^2 per m/s of velocity error)'),
     'xy_ki': ('ki', 'horizontal PID k_i (m/s^2 per m s)'),
+    'xy_precise_kp': ('precise_kp', 'k_p over the deck (DESCEND/FINAL)'),
+    'xy_precise_kd': ('precise_kd', 'k_d over the deck (DESCEND/FINAL)'),
+    'xy_precise_ki': ('precise_ki', 'k_i over the deck (DESCEND/FINAL)'),
     'xy_max_accel_mps2': ('max_accel_mps2', 'horizontal acceleration command limit (m/s^2)'),
     'max_tilt_rad': ('max_tilt_rad', 'tilt limit of the attitude command (rad)'),
     'xy_max_integral_accel_mps2': ('max_integral_accel_mps2',
@@ -122,6 +125,9 @@ HORIZONTAL_FIELDS: dict[str, tuple[str, str]] = {
 _H_RULES = {
     'kp': (lambda v: v > 0, 'must be > 0'), 'kd': (lambda v: v >= 0, 'must be >= 0'),
     'ki': (lambda v: v >= 0, 'must be >= 0'),
+    'precise_kp': (lambda v: v > 0, 'must be > 0'),
+    'precise_kd': (lambda v: v >= 0, 'must be >= 0'),
+    'precise_ki': (lambda v: v >= 0, 'must be >= 0'),
     'max_accel_mps2': (lambda v: v > 0, 'must be > 0'),
     'max_tilt_rad': (lambda v: 0 < v < math.radians(60.0), 'must be in (0, 1.0472) (60 deg)'),
     'max_integral_accel_mps2': (lambda v: v >= 0, 'must be >= 0'),
@@ -430,7 +436,7 @@ class LandingPlannerNode(Node):
         pos, vel = vehicle.position_m, vehicle.velocity_mps
         roll, pitch = self.horizontal.step(out.setpoint_m, out.velocity_ff_mps,
                                            (pos[0], pos[1]), (vel[0], vel[1]),
-                                           vehicle.yaw_rad, dt)
+                                           vehicle.yaw_rad, dt, precise=out.precise_xy)
         if not all_finite(roll, pitch, out.yaw_rad, *out.setpoint_m, *out.velocity_ff_mps,
                           out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2):
             self._withhold('non_finite_output')   # defensive: the cores never do this

@@ -65,7 +65,7 @@ class PlannerParams:
     vertical_jerk_mps3: float = 2.0
     descent_speed_mps: float = 0.4      # Step 6, relative to the deck
     final_approach_height_m: float = 0.5  # Step 9 (like PX4 PLD_FAPPR_ALT)
-    final_speed_mps: float = 0.2        # Step 10, relative to the deck
+    final_speed_mps: float = 0.12       # Step 10, relative to the deck (campaign: README)
     final_press_m: float = 0.3          # final target this far below contact height
     search_height_m: float = 3.5        # Step 12, above the surface below
     search_speed_mps: float = 0.5

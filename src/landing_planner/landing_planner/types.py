@@ -72,3 +72,8 @@ class PlannerOutput:
     searches: int
     reason: str                           # why the last transition happened
     vertical_mode: str = VERTICAL_RELATIVE
+
+    @property
+    def precise_xy(self) -> bool:
+        """Fly the horizontal controller's stiffer gain set (over the deck, descending)."""
+        return self.mode in (Mode.DESCEND, Mode.FINAL)
