@@ -17,6 +17,7 @@ TOOL_MODULES = (
     'deckland.topic',
     'deckland.bag',
     'deckland.plot',
+    'deckland.bench',
 )
 
 
