@@ -231,15 +231,21 @@ class MavlinkBridgeNode(Node):
             vals = (msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed)
             if all(map(math.isfinite, vals)):
                 self._att = attitude_to_enu(*vals)
+            else:
+                self._count_rejected('nan')
         elif kind == 'LOCAL_POSITION_NED':
             vals = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
             if all(map(math.isfinite, vals)):
                 self._pos = local_position_ned_to_enu(*vals)
                 self._publish_odom()
+            else:
+                self._count_rejected('nan')
         elif kind == 'HIGHRES_IMU':
             vals = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro)
             if all(map(math.isfinite, vals)):
                 self._publish_imu(*imu_frd_to_flu(*vals))
+            else:
+                self._count_rejected('nan')
         elif kind == 'SCALED_IMU':
             self._publish_imu(*scaled_imu_to_flu(msg.xacc, msg.yacc, msg.zacc, msg.xgyro,
                                                  msg.ygyro, msg.zgyro))
@@ -256,6 +262,10 @@ class MavlinkBridgeNode(Node):
             out.max_range = msg.max_distance * 0.01
             out.range = math.inf if r is None else r
             self.pub_range.publish(out)
+
+    def _count_rejected(self, reason: str) -> None:
+        with self._lock:
+            self.core.rejected[reason] = self.core.rejected.get(reason, 0) + 1
 
     def _publish_latched(self, key: str, pub, msg) -> None:
         if self._published_state.get(key) != msg.data:
