@@ -1,0 +1,66 @@
+"""A real ``deckland up`` subprocess stopped with SIGTERM once the topics flow: every child pid
+is gone within 5 s, the exit status is 143 (128 + SIGTERM, README-up.md), and the bag being
+recorded is finished and readable, with report.json saying why the run ended."""
+
+import json
+import os
+import pathlib
+import re
+import signal
+import subprocess
+import sys
+import time
+
+from deckland.bag import bag_info, is_recording, needs_reindex
+
+DECKLAND = str(pathlib.Path(sys.executable).with_name('deckland'))
+
+
+def alive(pid: int) -> bool:
+    try:
+        with open(f'/proc/{pid}/stat') as fh:
+            return fh.read().rsplit(')', 1)[1].split()[0] != 'Z'
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+def test_sigterm_stops_every_child_within_5_s_and_finishes_the_bag(tmp_path):
+    run = tmp_path / 'run'
+    log = tmp_path / 'up.log'
+    with open(log, 'w') as out:
+        proc = subprocess.Popen([DECKLAND, 'up', '--scenario', 'paper', '--record', str(run),
+                                 '--timeout', '60'], stdout=out, stderr=subprocess.STDOUT,
+                                env=dict(os.environ, PYTHONUNBUFFERED='1'))
+    try:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and 'start_landing:' not in log.read_text():
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.1)
+        text = log.read_text()
+        assert 'all topics flowing' in text and 'recording' in text, text
+        pids = [int(p) for p in re.findall(r'started \w+ \(pid (\d+)\)', text)]
+        assert len(pids) == 6
+        time.sleep(1.0)                       # well into the mission
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        while any(alive(p) for p in pids) and time.monotonic() - t0 < 10.0:
+            time.sleep(0.02)
+        children_gone_s = time.monotonic() - t0
+        code = proc.wait(timeout=15.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = log.read_text()
+    assert children_gone_s <= 5.0, text
+    assert code == 128 + signal.SIGTERM, text
+    assert 'interrupted by SIGTERM' in text and 'exit status       143' in text
+    # the bag is finished (footer, index, metadata) and holds the mission since the trigger
+    assert not is_recording(run) and not needs_reindex(run)
+    info = bag_info(run, recover=False)
+    topics = {t.name.lstrip('/'): t.count for t in info.topics}
+    assert topics.get('control/thrust', 0) > 50 and topics.get('planner/mode', 0) >= 1
+    assert info.duration_s > 1.0
+    report = json.loads((run / 'report.json').read_text())
+    assert report['interrupted'] == 'SIGTERM' and report['exit_status'] == 143
+    assert report['success'] is False and report['bag']['messages'] == info.message_count
+    assert 'crashed_nodes' not in report          # the stop is not a crash
