@@ -1,0 +1,188 @@
+"""``deckland up`` safety without starting anything: every socket of the graph's defaults is on
+loopback, parameters are never evaluated (no eval/exec/shell anywhere in src/), the record
+directory never overwrites foreign data, and the summary says what happened."""
+
+import argparse
+import importlib
+import ipaddress
+import pathlib
+import tokenize
+
+from deckland.orchestrator import load_graph
+from deckland.up import (
+    EXIT_CODES,
+    default_graph_path,
+    graph_substitutions,
+    prepare_record_dir,
+    summary_lines,
+)
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SOCKET_WORDS = ('address', 'url', 'connection', 'host')
+
+
+def sim_args(**kw):
+    base = {'scenario': 'paper', 'seed': 1, 'hardware': False, 'mavlink': None,
+            'pixy_port': None, 'area': (0.0, 0.0)}
+    base.update(kw)
+    return argparse.Namespace(**base)
+
+
+def effective_parameters(spec) -> dict:
+    """The node's declared defaults (its module's PARAMS) overridden by the graph entry."""
+    module = importlib.import_module(f'{spec.package}.{spec.module}')
+    values = {p.name: p.default for p in module.PARAMS}
+    values.update(spec.parameters)
+    return values
+
+
+def host_of(value: str) -> str:
+    """'udpin:H:P' / 'udpout:H:P' / 'tcp:H:P' / 'H' -> H."""
+    parts = value.split(':')
+    if parts[0] in ('udp', 'udpin', 'udpout', 'udpbcast', 'tcp', 'tcpin') and len(parts) == 3:
+        return parts[1]
+    return value
+
+
+def is_loopback(host: str) -> bool:
+    if host == 'localhost':
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def socket_parameters(hardware: bool, **kw):
+    subs = graph_substitutions(sim_args(hardware=hardware, **kw))
+    graph = load_graph(default_graph_path(), subs, hardware)
+    out = []
+    for spec in graph['nodes']:
+        for name, value in effective_parameters(spec).items():
+            if isinstance(value, str) and any(w in name for w in SOCKET_WORDS):
+                out.append((spec.name, name, value))
+    return graph, out
+
+
+def test_every_socket_of_the_simulated_graph_is_on_loopback():
+    _, found = socket_parameters(hardware=False)
+    names = {(n, p) for n, p, _ in found}
+    # the scan really sees the sockets this test is about
+    assert {('pixy_driver', 'udp_bind_address'), ('mavlink_bridge', 'connection'),
+            ('deck_simulator', 'mavlink_url'), ('deck_simulator', 'pixy_udp_address')} <= names
+    bad = [(n, p, v) for n, p, v in found if not is_loopback(host_of(v))]
+    assert not bad, f'non-loopback socket defaults: {bad}'
+
+
+def test_hardware_graph_is_loopback_unless_configured_otherwise():
+    # serial devices for the autopilot and the Pixy: the only UDP left is pixy's (unused) bind
+    _, found = socket_parameters(hardware=True, mavlink='/dev/ttyACM0', pixy_port='/dev/ttyUSB0')
+    for node, name, value in found:
+        assert value.startswith('/dev/') or is_loopback(host_of(value)), (node, name, value)
+    # an explicit non-loopback URL is passed through unchanged (configured otherwise)
+    _, found = socket_parameters(hardware=True, mavlink='udpin:0.0.0.0:14540',
+                                 pixy_port='/dev/ttyUSB0')
+    assert ('mavlink_bridge', 'connection', 'udpin:0.0.0.0:14540') in found
+
+
+def test_loopback_check_itself_rejects_wildcards():
+    assert not is_loopback(host_of('udpin:0.0.0.0:14540'))
+    assert not is_loopback('192.168.1.5') and is_loopback('127.0.0.1') and is_loopback('::1')
+
+
+# ----------------------------------------------------------------------- no code evaluation
+
+FORBIDDEN_CALLS = {'eval', 'exec', 'compile', '__import__', 'execfile'}
+FORBIDDEN_ATTRS = {('os', 'system'), ('os', 'popen'), ('yaml', 'load'), ('yaml', 'unsafe_load'),
+                   ('pickle', 'load'), ('pickle', 'loads'), ('marshal', 'loads')}
+
+
+def offending_tokens(path: pathlib.Path) -> list[str]:
+    """Calls of eval/exec/compile/__import__ (not attributes like re.compile), os.system & co,
+    and shell=True, found with the tokenizer (strings and comments do not count)."""
+    out = []
+    with open(path, 'rb') as fh:
+        toks = [t for t in tokenize.tokenize(fh.readline)
+                if t.type not in (tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE,
+                                  tokenize.INDENT, tokenize.DEDENT)]
+    for i, t in enumerate(toks[:-1]):
+        prev = toks[i - 1].string if i else ''
+        nxt = toks[i + 1].string
+        if t.type == tokenize.NAME and nxt == '(' and prev != '.' and \
+                t.string in FORBIDDEN_CALLS and prev != 'def':
+            out.append(f'{path}:{t.start[0]}: {t.string}(')
+        if t.type == tokenize.NAME and prev == '.' and i >= 2 and \
+                (toks[i - 2].string, t.string) in FORBIDDEN_ATTRS:
+            out.append(f'{path}:{t.start[0]}: {toks[i - 2].string}.{t.string}')
+        if t.string == 'shell' and nxt == '=' and i + 2 < len(toks) and \
+                toks[i + 2].string == 'True':
+            out.append(f'{path}:{t.start[0]}: shell=True')
+    return out
+
+
+def test_no_eval_exec_or_shell_anywhere_in_src():
+    files = [p for p in (ROOT / 'src').rglob('*.py') if '.egg-info' not in p.as_posix()]
+    assert len(files) > 30
+    bad = [hit for p in files for hit in offending_tokens(p)]
+    assert not bad, bad
+
+
+def test_the_scanner_finds_what_it_looks_for(tmp_path):
+    f = tmp_path / 'x.py'
+    f.write_text("import os, re, subprocess, yaml\n"
+                 "eval('1')\nexec ('x=1')\nos.system('ls')\nyaml.load(s)\n"
+                 "subprocess.run('ls', shell=True)\n__import__('os')\n"
+                 "re.compile('a')  # eval( in a comment\ns = 'exec(1)'\nyaml.safe_load(s)\n")
+    hits = offending_tokens(f)
+    assert [h.split(': ', 1)[1] for h in hits] == [
+        'eval(', 'exec(', 'os.system', 'yaml.load', 'shell=True', '__import__(']
+
+
+# ------------------------------------------------------------------------- record directory
+
+def test_record_dir_rotates_a_previous_run_and_refuses_foreign_data(tmp_path):
+    new = tmp_path / 'new'
+    assert prepare_record_dir(str(new)) == new and not new.exists()
+    run = tmp_path / 'run'
+    run.mkdir()
+    (run / 'report.json').write_text('{"old": 1}')
+    prepare_record_dir(str(run))
+    assert not run.exists() and (tmp_path / 'run.prev' / 'report.json').exists()
+    run.mkdir()
+    (run / 'metadata.yaml').write_text('x')
+    prepare_record_dir(str(run))         # the older .prev (a run too) is replaced
+    assert (tmp_path / 'run.prev' / 'metadata.yaml').exists()
+    assert not (tmp_path / 'run.prev' / 'report.json').exists()
+    mine = tmp_path / 'thesis'
+    mine.mkdir()
+    (mine / 'chapter1.tex').write_text('precious')
+    with pytest.raises(ValueError, match='not empty and not a previous run'):
+        prepare_record_dir(str(mine))
+    assert (mine / 'chapter1.tex').read_text() == 'precious'
+
+
+# -------------------------------------------------------------------------------- summary
+
+def test_summary_lists_outcome_numbers_and_where_things_are():
+    report = {'success': True, 'reason': 'landed on deck', 'crash': False, 'safe': True,
+              'touchdown_speed_mps': 0.4506, 'horizontal_error_m': 0.0589,
+              'time_to_land_s': 11.71, 'autopilot_modes': [{'t_s': 0.1, 'mode': 'OFFBOARD'}],
+              'bag': {'messages': 100, 'topics': 20}}
+    text = '\n'.join(summary_lines(report, 0, '/tmp/r'))
+    for want in ('landed (landed on deck)', '0.45 m/s', '0.059 m', '11.7 s',
+                 '/tmp/r (100 messages, 20 topics)', '/tmp/r/report.json', 'exit status       0'):
+        assert want in text, text
+    fs = {'success': False, 'reason': 'landed on the ground', 'crash': False, 'safe': True,
+          'failsafe': 'AUTO.LAND', 'touchdown_speed_mps': None,
+          'injected_faults': [{'node': 'dob_altitude', 'at_s': 5.01}]}
+    text = '\n'.join(summary_lines(fs, 1, None))
+    assert 'safe (no crash); autopilot failsafe AUTO.LAND' in text
+    assert 'touchdown speed   n/a' in text and 'node_kill dob_altitude at 5.0 s' in text
+    assert 'not recorded' in text and EXIT_CODES[1] in text
+
+
+def test_exit_codes_are_documented():
+    readme = (ROOT / 'src' / 'deckland' / 'README-up.md').read_text()
+    for code in EXIT_CODES:
+        assert f'| {code} |' in readme
