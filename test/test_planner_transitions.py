@@ -424,3 +424,14 @@ def test_heading_is_latched_at_start_and_held():
     assert out.yaw_rad == 0.7
     bad = make_vehicle(2 * DT, yaw=math.nan)
     assert p.step(2 * DT, DT, bad, make_apron(2 * DT)).yaw_rad == 0.7
+
+
+def test_idle_does_not_latch_a_hold_height_before_the_first_valid_height():
+    """Invalid states before the estimator is up must not become the IDLE hold height."""
+    d = Driver(xy=(0.0, 0.0))
+    d.valid = False                            # the estimator has not got a height yet
+    d.run(0.5)
+    d.valid = True                             # now a valid 2.0 m height arrives
+    outs = [d.step() for _ in range(200)]
+    assert all(o.mode is Mode.IDLE for o in outs)
+    assert min(o.z_d_m for o in outs) > 1.95   # holds where it is, does not sink

@@ -65,7 +65,7 @@ class PlannerParams:
     vertical_jerk_mps3: float = 2.0
     descent_speed_mps: float = 0.4      # Step 6, relative to the deck
     final_approach_height_m: float = 0.5  # Step 9 (like PX4 PLD_FAPPR_ALT)
-    final_speed_mps: float = 0.12       # Step 10, relative to the deck (campaign: README)
+    final_speed_mps: float = 0.08       # Step 10, relative to the deck (campaign: README)
     final_press_m: float = 0.3          # final target this far below contact height
     search_height_m: float = 3.5        # Step 12, above the surface below
     search_speed_mps: float = 0.5
@@ -568,6 +568,10 @@ class LandingPlanner:
         if mode in (Mode.HOLD, Mode.TAKEOFF):
             return latch.hold_height_m, p.vertical_speed_mps
         if mode is Mode.IDLE:
+            if not self._zref_ok:
+                # no valid height yet: nothing to hold. Latching the uninitialised reference
+                # (0 m) here made the vehicle sink to the ground when OFFBOARD engaged.
+                return self._placeholder_height(), p.vertical_speed_mps
             if latch.hold_height_m is None:
                 latch.hold_height_m = self._zref.z_m
             return latch.hold_height_m, p.vertical_speed_mps
