@@ -35,7 +35,7 @@ class RunConfig:
     physics_hz: int = 400
     control_hz: int = 100
     camera_hz: int = 50
-    settle_after_contact_s: float = 0.5
+    settle_after_contact_s: float = 3.0   # end of run: LANDED (disarm) or this long after contact
     record: bool = False
     surface_accel_ff: bool = False
     dob_overrides: tuple[tuple[str, float], ...] = ()
