@@ -254,6 +254,8 @@ class MavlinkBridgeNode(Node):
                 return  # not the downward LidarLite
             r = distance_sensor_to_range_m(msg.current_distance, msg.min_distance,
                                            msg.max_distance, msg.orientation)
+            if msg.current_distance == 0xFFFF:
+                r = None  # UINT16_MAX = unknown, not 655.35 m (max_distance may be 0)
             out = Range()
             self._stamp(out.header, self.cfg['lidar_frame'])
             out.radiation_type = Range.INFRARED
