@@ -203,6 +203,10 @@ class MavlinkBridgeNode(Node):
     def _handle(self, msg) -> None:
         kind = msg.get_type()
         now = self._now()
+        if kind not in ('BAD_DATA', 'HEARTBEAT') and self.core.target_system is not None \
+                and msg.get_srcSystem() != self.core.target_system:
+            self._count_rejected('other_system')  # another vehicle's data is not ours
+            return
         if kind == 'BAD_DATA':
             with self._lock:
                 self.core.count_bad_data()
