@@ -316,14 +316,26 @@ class MavlinkBridgeNode(Node):
 
     # --- ROS in --------------------------------------------------------------------------
 
+    def _future(self, stamp_s: float) -> bool:
+        """A command stamped ahead of the node clock by more than ``input_timeout_s`` is
+        refused: accepted, it would make every later command "out of order" until then."""
+        if stamp_s - self.get_clock().now().nanoseconds * 1e-9 > self.cfg['input_timeout_s']:
+            self._count_rejected('future_stamp')
+            return True
+        return False
+
     def _on_attitude(self, msg: QuaternionStamped) -> None:
         q = msg.quaternion
+        if self._future(stamp_to_s(msg.header.stamp)):
+            return
         with self._lock:
             self.core.on_attitude_command(self._now(), stamp_to_s(msg.header.stamp),
                                           (q.w, q.x, q.y, q.z))
 
     def _on_thrust(self, msg: WrenchStamped) -> None:
         stamp_s = stamp_to_s(msg.header.stamp)
+        if self._future(stamp_s):
+            return
         with self._lock:
             sp = self.core.on_thrust_command(self._now(), stamp_s, msg.wrench.force.z)
             if sp is not None:
