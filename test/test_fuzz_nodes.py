@@ -278,15 +278,22 @@ def build_bad(plan, mutations, now: float, last_valid: float):
     """Apply mutations to a valid message; returns (msg, must_reject)."""
     msg = plan['make'](now)
     must = False
-    for kind, a, b in sorted(mutations, key=lambda m: m[0] == 'struct'):
+    final = {}      # a later mutation of the same field (or of the stamp) wins
+    for kind, a, b in mutations:
         if kind == 'field':
-            path, width, rule = plan['fields'][a]
-            value = b
-            if width == 'f32' and math.isfinite(value) and abs(value) > 3.4e38:
-                value = math.copysign(3.4e38, value)
-            if set_path(msg, path, value):
-                must |= rule(value)
-        elif kind == 'stamp':
+            final[a] = b
+    stamps = [m for m in mutations if m[0] == 'stamp']
+    mutations = [m for m in mutations if m[0] != 'stamp'] + stamps[-1:]
+    for a, value in final.items():
+        path, width, rule = plan['fields'][a]
+        if width == 'f32' and math.isfinite(value) and abs(value) > 3.4e38:
+            value = math.copysign(3.4e38, value)
+        if set_path(msg, path, value):
+            must |= rule(value)
+    for kind, a, _b in sorted(mutations, key=lambda m: m[0] == 'struct'):
+        if kind == 'field':
+            continue
+        if kind == 'stamp':
             apply_stamp(plan['stamp_header'](msg), a, now, last_valid)
             must |= a in plan['stamp']
         else:
@@ -430,7 +437,8 @@ def apron_plans():
         m.orientation_covariance[0] = -1.0
 
     def zero_quaternion(m):
-        m.orientation.w = 0.0
+        o = m.orientation
+        o.w = o.x = o.y = o.z = 0.0
 
     def hdr(m):
         return m.header
@@ -581,7 +589,7 @@ def apron_state_plan(reads, height_m=2.0, z_m=2.0):
         return lambda v: math.isnan(v) or (math.isinf(v) and i in reads)
 
     def relabel(m):
-        m.layout.dim[0].label = 'apron_state_v0'
+        m.layout.dim = [MultiArrayDimension(label='apron_state_v0', size=29, stride=29)]
 
     def resize(n):
         def fn(m):
