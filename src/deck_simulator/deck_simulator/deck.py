@@ -166,7 +166,8 @@ class Deck:
     the pad-top height above the ground and its vertical velocity and acceleration.
     """
 
-    __slots__ = ('cx0', 'cy0', 'drift_x', 'drift_y', 'half_x', 'half_y', 'heave', 'mean_z')
+    __slots__ = ('_heave_state', 'cx0', 'cy0', 'drift_x', 'drift_y', 'half_x', 'half_y',
+                 'heave', 'mean_z')
 
     def __init__(self, position_m: tuple[float, float], size_m: tuple[float, float],
                  mean_height_m: float, heave, drift_velocity_mps: tuple[float, float] = (
@@ -175,10 +176,11 @@ class Deck:
         self.half_x, self.half_y = 0.5 * float(size_m[0]), 0.5 * float(size_m[1])
         self.mean_z = float(mean_height_m)
         self.heave = heave
+        self._heave_state = heave.state   # bound once: state() runs every physics sub-step
         self.drift_x, self.drift_y = float(drift_velocity_mps[0]), float(drift_velocity_mps[1])
 
     def state(self, t_s: float) -> tuple[float, float, float, float, float]:
-        z, vz, az = self.heave.state(t_s)
+        z, vz, az = self._heave_state(t_s)
         return (self.cx0 + self.drift_x * t_s, self.cy0 + self.drift_y * t_s,
                 self.mean_z + z, vz, az)
 

@@ -1,9 +1,12 @@
 """Sensor models of the simulated vehicle (truth geometry plus seeded noise). Pure.
 
 Every sensor owns its own ``random.Random`` so that reading one sensor more or less often
-never changes another sensor's stream. Stochastic processes (GPS bias, baro bias, glints) are
-advanced lazily at read time with their exact discretisation, so they cost nothing per physics
-step.
+never changes another sensor's stream. Its Gaussian noise comes from a standard-normal source
+``normal() -> float``: by default ``rng.gauss(0, 1)`` (so a sensor built from a ``Random`` alone
+behaves as before), and in :class:`~deck_simulator.world.World` a :func:`normal_stream` of its
+own (seeded numpy blocks, several times cheaper per sample than ``random.gauss``).
+Stochastic processes (GPS bias, baro bias, glints) are advanced lazily at read time with their
+exact discretisation, so they cost nothing per physics step.
 
 The camera projection here is the simulator's *truth* and is written independently of the
 estimator's camera model (paper (27)-(30)): a full pinhole through the tilted body.
@@ -11,13 +14,44 @@ estimator's camera model (paper (27)-(30)): a full pinhole through the tilted bo
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+import hashlib
 import math
 import random
 
 from deckland_common.frames import Mat3, rot_body_to_world
+import numpy as np
 
 Block = tuple[int, int, int, int, int]   # (signature, x, y, w, h), Pixy units
+Normal = Callable[[], float]             # a standard-normal source: normal() ~ N(0, 1)
+
+NORMAL_BLOCK = 256   # samples drawn per numpy call by normal_stream
+
+
+def normal_stream(key: str, block: int = NORMAL_BLOCK) -> Normal:
+    """An endless, deterministic N(0, 1) source named ``key`` (e.g. ``'7:imu:normal'``).
+
+    numpy's PCG64 seeded with the first 128 bits of sha256(key): different keys give
+    independent streams, the same key the same sequence (on every platform and Python
+    version). Samples are drawn ``block`` at a time with ``Generator.standard_normal`` and
+    handed out one by one as plain floats (``list.tolist`` + a generator), which costs about a
+    tenth of ``random.Random.gauss`` per sample.
+    """
+    seed = int.from_bytes(hashlib.sha256(key.encode()).digest()[:16], 'little')
+    gen = np.random.Generator(np.random.PCG64(seed))
+
+    def samples() -> Iterator[float]:
+        while True:
+            yield from gen.standard_normal(block).tolist()
+
+    return samples().__next__
+
+
+def _gauss_of(rng: random.Random) -> Normal:
+    """The default normal source of a sensor built from a ``random.Random`` only."""
+    gauss = rng.gauss
+    return lambda: gauss(0.0, 1.0)
 
 
 def _check(cond: bool, name: str, rule: str, value) -> None:
@@ -224,11 +258,13 @@ def lidar_true_range(position_m: tuple[float, float, float], r_body_to_world: Ma
 class Camera:
     """Pixy frame generator: beacon blob with noise, quantisation, dropouts, and glints."""
 
-    __slots__ = ('_c', '_cx', '_cy', '_fx', '_fy', 'glints', 'last_t', 'params', 'rng')
+    __slots__ = ('_c', '_cx', '_cy', '_fx', '_fy', 'glints', 'last_t', 'normal', 'params', 'rng')
 
-    def __init__(self, params: CameraParams, rng: random.Random) -> None:
+    def __init__(self, params: CameraParams, rng: random.Random,
+                 normal: Normal | None = None) -> None:
         self.params = params
-        self.rng = rng
+        self.rng = rng                 # uniforms: dropouts, glints
+        self.normal = normal if normal is not None else _gauss_of(rng)   # pixel noise
         self._fx, self._fy = params.fx_px, params.fy_px
         self._cx, self._cy = params.principal_point_px
         self._c = optical_from_body(params.mount_rpy_rad)
@@ -249,8 +285,9 @@ class Camera:
         xo, yo, zo = _to_optical(self._c, r_body_to_world, d0, d1, d2)
         dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         if zo > 1e-3 and dist <= p.max_range_m and rng.random() >= p.dropout_prob:
-            u = self._cx + self._fx * xo / zo + rng.gauss(0.0, p.pixel_noise_px)
-            v = self._cy + self._fy * yo / zo + rng.gauss(0.0, p.pixel_noise_px)
+            normal = self.normal
+            u = self._cx + self._fx * xo / zo + p.pixel_noise_px * normal()
+            v = self._cy + self._fy * yo / zo + p.pixel_noise_px * normal()
             ui, vi = round(u), round(v)
             if show_beacon and 0 <= ui < p.width_px and 0 <= vi < p.height_px:
                 w = max(1, round(self._fx * p.beacon_size_m / zo))
@@ -299,11 +336,13 @@ class Camera:
 
 
 class Lidar:
-    __slots__ = ('params', 'rng')
+    __slots__ = ('normal', 'params', 'rng')
 
-    def __init__(self, params: LidarParams, rng: random.Random) -> None:
+    def __init__(self, params: LidarParams, rng: random.Random,
+                 normal: Normal | None = None) -> None:
         self.params = params
-        self.rng = rng
+        self.rng = rng                 # uniforms: dropouts
+        self.normal = normal if normal is not None else _gauss_of(rng)
 
     def read(self, true_range_m: float | None) -> float | None:
         p = self.params
@@ -311,7 +350,7 @@ class Lidar:
             return None
         if p.dropout_prob > 0.0 and self.rng.random() < p.dropout_prob:
             return None
-        r = true_range_m + self.rng.gauss(0.0, p.noise_m)
+        r = true_range_m + p.noise_m * self.normal()
         if r < p.min_range_m:
             return None
         return r if r <= p.max_range_m else None
@@ -320,54 +359,66 @@ class Lidar:
 class Gps:
     """Local position (ENU) with OU bias (exact discretisation at read time) + white noise."""
 
-    __slots__ = ('bx', 'by', 'bz', 'last_t', 'params', 'rng')
+    __slots__ = ('_ou_dt', '_ou_k', 'bx', 'by', 'bz', 'last_t', 'normal', 'params', 'rng')
 
-    def __init__(self, params: GpsParams, rng: random.Random, initial_bias: bool = True) -> None:
+    def __init__(self, params: GpsParams, rng: random.Random, initial_bias: bool = True,
+                 normal: Normal | None = None) -> None:
         self.params = params
         self.rng = rng
+        self.normal = g = normal if normal is not None else _gauss_of(rng)
         s = params.bias_std_m if initial_bias else 0.0
-        self.bx = rng.gauss(0.0, s) if s > 0 else 0.0
-        self.by = rng.gauss(0.0, s) if s > 0 else 0.0
+        self.bx = s * g() if s > 0 else 0.0
+        self.by = s * g() if s > 0 else 0.0
         sz = params.alt_bias_std_m if initial_bias else 0.0
-        self.bz = rng.gauss(0.0, sz) if sz > 0 else 0.0
+        self.bz = sz * g() if sz > 0 else 0.0
         self.last_t: float | None = None
+        self._ou_dt = -1.0                        # cache: the read interval of _ou_k
+        self._ou_k = (1.0, 0.0, 1.0, 0.0)         # (a, q) horizontal, (a, q) altitude
 
     def read(self, t_s: float, position_m, velocity_mps):
         p = self.params
-        g = self.rng.gauss
-        if self.last_t is not None and t_s > self.last_t:
-            dt = t_s - self.last_t
-            a = math.exp(-dt / p.bias_tau_s)
-            q = p.bias_std_m * math.sqrt(1.0 - a * a)
-            self.bx = a * self.bx + q * g(0.0, 1.0)
-            self.by = a * self.by + q * g(0.0, 1.0)
-            a = math.exp(-dt / p.alt_bias_tau_s)
-            self.bz = a * self.bz + p.alt_bias_std_m * math.sqrt(1.0 - a * a) * g(0.0, 1.0)
-        if self.last_t is None or t_s > self.last_t:
+        g = self.normal
+        last = self.last_t
+        if last is not None and t_s > last:
+            dt = t_s - last
+            if dt != self._ou_dt:   # exact OU discretisation, cached for the usual fixed rate
+                a = math.exp(-dt / p.bias_tau_s)
+                az = math.exp(-dt / p.alt_bias_tau_s)
+                self._ou_k = (a, p.bias_std_m * math.sqrt(1.0 - a * a),
+                              az, p.alt_bias_std_m * math.sqrt(1.0 - az * az))
+                self._ou_dt = dt
+            a, q, az, qz = self._ou_k
+            self.bx = a * self.bx + q * g()
+            self.by = a * self.by + q * g()
+            self.bz = az * self.bz + qz * g()
+        if last is None or t_s > last:
             self.last_t = t_s
-        pos = (position_m[0] + self.bx + g(0.0, p.noise_m),
-               position_m[1] + self.by + g(0.0, p.noise_m),
-               position_m[2] + self.bz + g(0.0, p.alt_noise_m))
-        sv = p.velocity_noise_mps
-        vel = (velocity_mps[0] + g(0.0, sv), velocity_mps[1] + g(0.0, sv),
-               velocity_mps[2] + g(0.0, sv))
+        sn, sa, sv = p.noise_m, p.alt_noise_m, p.velocity_noise_mps
+        pos = (position_m[0] + self.bx + sn * g(),
+               position_m[1] + self.by + sn * g(),
+               position_m[2] + self.bz + sa * g())
+        vel = (velocity_mps[0] + sv * g(), velocity_mps[1] + sv * g(),
+               velocity_mps[2] + sv * g())
         return pos, vel
 
 
 class Imu:
-    __slots__ = ('params', 'rng')
+    __slots__ = ('normal', 'params', 'rng')
 
-    def __init__(self, params: ImuParams, rng: random.Random) -> None:
+    def __init__(self, params: ImuParams, rng: random.Random,
+                 normal: Normal | None = None) -> None:
         self.params = params
         self.rng = rng
+        self.normal = normal if normal is not None else _gauss_of(rng)
 
     def attitude(self, roll: float, pitch: float, yaw: float) -> tuple[float, float, float]:
-        g = self.rng.gauss
-        s = self.params.attitude_noise_rad
-        y = yaw + g(0.0, self.params.yaw_noise_rad)
-        return roll + g(0.0, s), pitch + g(0.0, s), (y + math.pi) % (2.0 * math.pi) - math.pi
+        g = self.normal
+        p = self.params
+        s = p.attitude_noise_rad
+        y = yaw + p.yaw_noise_rad * g()
+        return roll + s * g(), pitch + s * g(), (y + math.pi) % (2.0 * math.pi) - math.pi
 
     def accel(self, ax: float, ay: float, az: float) -> tuple[float, float, float]:
-        g = self.rng.gauss
+        g = self.normal
         s = self.params.accel_noise_mps2
-        return ax + g(0.0, s), ay + g(0.0, s), az + g(0.0, s)
+        return ax + s * g(), ay + s * g(), az + s * g()

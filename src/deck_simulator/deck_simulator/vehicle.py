@@ -148,7 +148,7 @@ class Vehicle:
     """
 
     __slots__ = (
-        '_a_mot', '_dt_cache', 'ax', 'ay', 'az', 'cmd_pitch', 'cmd_roll', 'cmd_thrust',
+        '_a_mot', '_dt_cache', '_k', 'ax', 'ay', 'az', 'cmd_pitch', 'cmd_roll', 'cmd_thrust',
         'cmd_yaw', 'f1', 'f2', 'f3', 'f4', 'gamma', 'i_p', 'i_q', 'i_r', 'params', 'pitch',
         'pitch_rate', 'roll', 'roll_rate', 'vx', 'vy', 'vz', 'x', 'y', 'yaw', 'yaw_rate', 'z',
     )
@@ -171,6 +171,19 @@ class Vehicle:
         self.gamma = 1.0
         self._dt_cache = -1.0
         self._a_mot = 0.0
+        # parameters hoisted once (step() runs at 400 Hz): plain floats, same expressions
+        jx, jy, jz = params.inertia_kgm2
+        self._k = (
+            jx, jy, jz, (jy - jz) / jx, (jz - jx) / jy, (jx - jy) / jz,
+            params.max_rate_radps, params.max_yaw_rate_radps, params.att_p, params.yaw_p,
+            params.rate_p, params.rate_i, params.yaw_rate_p, params.yaw_rate_i,
+            params.rate_i_limit_radps2, params.arm_length_m, params.yaw_moment_coeff_m,
+            params.motor_max_n, params.rotor_height_m, params.ge_min_rotor_height_m,
+            params.rho_true * params.prop_radius_m * params.prop_radius_m,
+            params.ge_max_gain, 1.0 - 1.0 / params.ge_max_gain, params.mass_kg,
+            params.drag_linear_n_per_mps, params.drag_quad_h_kg_per_m,
+            params.drag_quad_v_kg_per_m, params.gravity_mps2,
+        )
 
     @property
     def thrust_n(self) -> float:
@@ -185,52 +198,55 @@ class Vehicle:
         """Advance by dt_s (one attitude-loop tick; the caller keeps dt_s <= 1/400 s).
 
         ``surface_height_m`` is the world height of the surface under the vehicle (for z_p of
-        (4)); ``wind_*`` the air velocity in ENU.
+        (4)); ``wind_*`` the air velocity in ENU. The parameters come from the tuple hoisted in
+        ``__init__`` (the params are frozen); the arithmetic is that of the model above.
         """
-        p = self.params
+        (jx, jy, jz, kx, ky, kz, lim, ylim, att_p, yaw_p, rate_p, rate_i, yaw_rate_p,
+         yaw_rate_i, ilim, L, cd, fmax, rotor_h, zmin, rho_r2, gmax, q_max, m, drag_lin,
+         drag_qh, drag_qv, grav) = self._k
         if dt_s != self._dt_cache:
             self._dt_cache = dt_s
-            self._a_mot = 1.0 - math.exp(-dt_s / p.motor_tau_s)
-        jx, jy, jz = p.inertia_kgm2
+            self._a_mot = 1.0 - math.exp(-dt_s / self.params.motor_tau_s)
         roll, pitch, yaw = self.roll, self.pitch, self.yaw
         rr, pr, yr = self.roll_rate, self.pitch_rate, self.yaw_rate
 
         # --- attitude controller (angle P -> rate PI), α_cmd in rad/s² -------------------
-        lim = p.max_rate_radps
-        sp = p.att_p * (self.cmd_roll - roll)
+        sp = att_p * (self.cmd_roll - roll)
         sp = lim if sp > lim else (-lim if sp < -lim else sp)
         e = sp - rr
-        ilim = p.rate_i_limit_radps2
-        i = self.i_p + p.rate_i * e * dt_s
+        i = self.i_p + rate_i * e * dt_s
         i = ilim if i > ilim else (-ilim if i < -ilim else i)
         self.i_p = i
-        u_phi = jx * (p.rate_p * e + i)
-        sp = p.att_p * (self.cmd_pitch - pitch)
+        u_phi = jx * (rate_p * e + i)
+        sp = att_p * (self.cmd_pitch - pitch)
         sp = lim if sp > lim else (-lim if sp < -lim else sp)
         e = sp - pr
-        i = self.i_q + p.rate_i * e * dt_s
+        i = self.i_q + rate_i * e * dt_s
         i = ilim if i > ilim else (-ilim if i < -ilim else i)
         self.i_q = i
-        u_theta = jy * (p.rate_p * e + i)
-        lim = p.max_yaw_rate_radps
+        u_theta = jy * (rate_p * e + i)
         ey = (self.cmd_yaw - yaw + math.pi) % (2.0 * math.pi) - math.pi
-        sp = p.yaw_p * ey
-        sp = lim if sp > lim else (-lim if sp < -lim else sp)
+        sp = yaw_p * ey
+        sp = ylim if sp > ylim else (-ylim if sp < -ylim else sp)
         e = sp - yr
-        i = self.i_r + p.yaw_rate_i * e * dt_s
+        i = self.i_r + yaw_rate_i * e * dt_s
         i = ilim if i > ilim else (-ilim if i < -ilim else i)
         self.i_r = i
-        u_psi = jz * (p.yaw_rate_p * e + i)
+        u_psi = jz * (yaw_rate_p * e + i)
 
         # --- mixer: inverse of (1), attitude priority, per-motor limits --------------------
-        L = p.arm_length_m
         b = 0.25 * self.cmd_thrust
         dr = 0.5 * u_phi / L
         dp = 0.5 * u_theta / L
-        dy = 0.25 * u_psi / p.yaw_moment_coeff_m
+        dy = 0.25 * u_psi / cd
         d1, d2, d3, d4 = -dp - dy, dr + dy, dp - dy, -dr + dy
-        fmax = p.motor_max_n
-        dmax = max(d1, d2, d3, d4)
+        dmax = d1
+        if d2 > dmax:
+            dmax = d2
+        if d3 > dmax:
+            dmax = d3
+        if d4 > dmax:
+            dmax = d4
         if b + dmax > fmax:
             b = fmax - dmax
         c1, c2, c3, c4 = b + d1, b + d2, b + d3, b + d4
@@ -239,19 +255,23 @@ class Vehicle:
         c3 = 0.0 if c3 < 0.0 else (fmax if c3 > fmax else c3)
         c4 = 0.0 if c4 < 0.0 else (fmax if c4 > fmax else c4)
         a = self._a_mot
-        f1 = self.f1 + a * (c1 - self.f1)
-        f2 = self.f2 + a * (c2 - self.f2)
-        f3 = self.f3 + a * (c3 - self.f3)
-        f4 = self.f4 + a * (c4 - self.f4)
+        f1 = self.f1
+        f1 += a * (c1 - f1)
+        f2 = self.f2
+        f2 += a * (c2 - f2)
+        f3 = self.f3
+        f3 += a * (c3 - f3)
+        f4 = self.f4
+        f4 += a * (c4 - f4)
         self.f1, self.f2, self.f3, self.f4 = f1, f2, f3, f4
 
         # --- rotational dynamics (2), torques from (1) --------------------------------------
         t_phi = L * (f2 - f4)
         t_theta = L * (f3 - f1)
-        t_psi = p.yaw_moment_coeff_m * (-f1 + f2 - f3 + f4)
-        rr_n = rr + ((jy - jz) / jx * pr * yr + t_phi / jx) * dt_s
-        pr_n = pr + ((jz - jx) / jy * rr * yr + t_theta / jy) * dt_s
-        yr_n = yr + ((jx - jy) / jz * rr * pr + t_psi / jz) * dt_s
+        t_psi = cd * (-f1 + f2 - f3 + f4)
+        rr_n = rr + (kx * pr * yr + t_phi / jx) * dt_s
+        pr_n = pr + (ky * rr * yr + t_theta / jy) * dt_s
+        yr_n = yr + (kz * rr * pr + t_psi / jz) * dt_s
         self.roll_rate, self.pitch_rate, self.yaw_rate = rr_n, pr_n, yr_n
         self.roll = roll + rr_n * dt_s
         self.pitch = pitch + pr_n * dt_s
@@ -261,31 +281,28 @@ class Vehicle:
         self.yaw = yaw
 
         # --- translational dynamics (2)-(3) with ground effect (4) and drag δ --------------
-        zp = self.z + p.rotor_height_m - surface_height_m
-        zmin = p.ge_min_rotor_height_m
+        zp = self.z + rotor_h - surface_height_m
         if zp < zmin:
             zp = zmin
-        q = p.rho_true * p.prop_radius_m * p.prop_radius_m / (16.0 * zp * zp)
-        gmax = p.ge_max_gain
-        gamma = gmax if q >= 1.0 - 1.0 / gmax else 1.0 / (1.0 - q)
+        q = rho_r2 / (16.0 * zp * zp)
+        gamma = gmax if q >= q_max else 1.0 / (1.0 - q)
         self.gamma = gamma
         cr, sr = math.cos(roll), math.sin(roll)
-        cp, sp_ = math.cos(pitch), math.sin(pitch)
+        sp_ = math.sin(pitch)
         cy, sy = math.cos(yaw), math.sin(yaw)
-        m = p.mass_kg
         k = gamma * (f1 + f2 + f3 + f4) / m
-        rx = wx = self.vx - wind_x
-        ry = wy = self.vy - wind_y
-        wz = self.vz - wind_z
-        sh = math.sqrt(wx * wx + wy * wy)
-        kh = (p.drag_linear_n_per_mps + p.drag_quad_h_kg_per_m * sh) / m
-        ax = k * (cr * sp_ * cy + sr * sy) - kh * rx
-        ay = k * (cr * sp_ * sy - sr * cy) - kh * ry
-        az = k * cr * cp - p.gravity_mps2 - p.drag_quad_v_kg_per_m * abs(wz) * wz / m
+        vx, vy, vz = self.vx, self.vy, self.vz
+        wx = vx - wind_x
+        wy = vy - wind_y
+        wz = vz - wind_z
+        kh = (drag_lin + drag_qh * math.sqrt(wx * wx + wy * wy)) / m
+        ax = k * (cr * sp_ * cy + sr * sy) - kh * wx
+        ay = k * (cr * sp_ * sy - sr * cy) - kh * wy
+        az = k * cr * math.cos(pitch) - grav - drag_qv * abs(wz) * wz / m
         self.ax, self.ay, self.az = ax, ay, az
-        vx = self.vx + ax * dt_s
-        vy = self.vy + ay * dt_s
-        vz = self.vz + az * dt_s
+        vx += ax * dt_s
+        vy += ay * dt_s
+        vz += az * dt_s
         self.vx, self.vy, self.vz = vx, vy, vz
         self.x += vx * dt_s
         self.y += vy * dt_s

@@ -2,7 +2,9 @@
 
 ``World(scenario, seed)`` is the API of docs/interfaces.md. All randomness is drawn from
 ``seed`` through independent named streams (``random.Random(f'{seed}:<name>')``, string seeds
-hash deterministically), so e.g. reading the camera more often never changes the GPS noise.
+hash deterministically, for uniform draws; :func:`~deck_simulator.sensors.normal_stream`
+``f'{seed}:<name>:normal'`` for the Gaussian noise of each sensor and of the gusts), so e.g.
+reading the camera more often never changes the GPS noise.
 
 Contact model (beyond the paper, which only reports a successful landing):
 
@@ -30,7 +32,16 @@ from deckland_common.frames import rot_body_to_world, world_to_body_xy
 from deck_simulator.deck import Deck, make_heave
 from deck_simulator.faults import FaultSet
 from deck_simulator.scenario import Scenario
-from deck_simulator.sensors import Block, Camera, Gps, Imu, Lidar, lidar_true_range
+from deck_simulator.sensors import (
+    Block,
+    Camera,
+    Gps,
+    Imu,
+    Lidar,
+    Normal,
+    lidar_true_range,
+    normal_stream,
+)
 from deck_simulator.vehicle import Vehicle
 
 LIFTOFF_MARGIN_MPS2 = 0.2
@@ -108,6 +119,9 @@ class World:
         def stream(name: str) -> random.Random:
             return random.Random(f'{seed}:{name}')
 
+        def noise(name: str) -> Normal:
+            return normal_stream(f'{seed}:{name}:normal')
+
         setup = stream('setup')
         r = rz.start_offset_m * math.sqrt(setup.random())
         a = setup.uniform(0.0, 2.0 * math.pi)
@@ -133,22 +147,31 @@ class World:
         self.vehicle = Vehicle(vp, start, yaw0, hover)
 
         self._wind_rng = stream('wind')
+        self._wind_normal = n = noise('wind')
         w = sc.wind
         s = w.gust_std_mps
-        self.gust = [self._wind_rng.gauss(0.0, s) if s > 0 else 0.0,
-                     self._wind_rng.gauss(0.0, s) if s > 0 else 0.0,
-                     self._wind_rng.gauss(0.0, s * w.vertical_gust_ratio) if s > 0 else 0.0]
+        self.gust = [s * n() if s > 0 else 0.0,
+                     s * n() if s > 0 else 0.0,
+                     s * w.vertical_gust_ratio * n() if s > 0 else 0.0]
         self._gust_dt = -1.0
         self._gust_elapsed = 0.0
         self._gust_a = self._gust_q = 0.0
+        # constants of the 400 Hz sub-step, hoisted (the scenario is frozen)
+        self._gust_on = w.gust_std_mps > 0.0
+        self._gust_tau = w.gust_tau_s
+        self._gust_std = w.gust_std_mps
+        self._gust_vratio = w.vertical_gust_ratio
 
         sp = sc.sensors
-        self.camera = Camera(sp.camera, stream('camera'))
-        self.lidar = Lidar(sp.lidar, stream('lidar'))
-        self.gps = Gps(sp.gps, stream('gps'), initial_bias=rz.gps_bias)
-        self.imu = Imu(sp.imu, stream('imu'))
+        self.camera = Camera(sp.camera, stream('camera'), noise('camera'))
+        self.lidar = Lidar(sp.lidar, stream('lidar'), noise('lidar'))
+        self.gps = Gps(sp.gps, stream('gps'), initial_bias=rz.gps_bias, normal=noise('gps'))
+        self.imu = Imu(sp.imu, stream('imu'), noise('imu'))
 
         self.t_s = 0.0
+        # deck state (cx, cy, z_top, vz, az) at self.t_s, kept by _substep (one evaluation
+        # per sub-step serves contact, the sensors at "now" and truth())
+        self._deck_now = self.deck.state(0.0)
         self.contact: ContactEvent | None = None
         self.resting_on: str | None = None
         self.max_thrust_n = self.vehicle.thrust_n
@@ -283,7 +306,7 @@ class World:
         else:
             az = 2.0 * (-FAILSAFE_LAND_SPEED_MPS - v.vz)
         az = max(-0.5 * g, min(0.5 * g, az))
-        cx, cy, ztop, _, _ = self.deck.state(self.t_s)
+        cx, cy, ztop, _, _ = self._deck_now
         over = abs(v.x - cx) <= self.deck.half_x and abs(v.y - cy) <= self.deck.half_y
         surface = ztop if over and v.z > ztop else 0.0
         gamma = p.gamma(v.z + p.rotor_height_m - surface)
@@ -301,6 +324,9 @@ class World:
 
     def step(self, dt_s: float) -> None:
         """Advance the physics by dt_s, in sub-steps of at most ``physics_dt_s``."""
+        if dt_s == self.physics_dt_s:   # the runner's case (a float equal to a float)
+            self._substep(dt_s)
+            return
         if not (isinstance(dt_s, int | float) and math.isfinite(dt_s) and dt_s > 0.0):
             self.rejected['bad_dt'] += 1
             return
@@ -319,7 +345,8 @@ class World:
         deck = self.deck
         # the deck at the end of the sub-step: contact and the resting constraint must agree
         # with truth() at the new time (the half-step offset for z_p of (4) is immaterial)
-        cx, cy, ztop, dvz, daz = deck.state(t)
+        dk = deck.state(t)
+        cx, cy, ztop, dvz, daz = dk
         v = self.vehicle
         p = self.params
         if self._link_used:
@@ -327,20 +354,19 @@ class World:
         # wind: mean + OU gusts, updated every GUST_UPDATE_S with the exact discretisation
         # g ← a g + σ √(1−a²) n, a = exp(−Δt/τ) (zero-order hold in between)
         g = self.gust
-        sw = self.scenario.wind
-        if sw.gust_std_mps > 0.0:
+        if self._gust_on:
             self._gust_elapsed += h
             if self._gust_elapsed >= GUST_UPDATE_S:
                 dtg = self._gust_elapsed
                 self._gust_elapsed = 0.0
                 if dtg != self._gust_dt:
                     self._gust_dt = dtg
-                    self._gust_a = math.exp(-dtg / sw.gust_tau_s)
-                    self._gust_q = sw.gust_std_mps * math.sqrt(1.0 - self._gust_a ** 2)
-                a, q, gauss = self._gust_a, self._gust_q, self._wind_rng.gauss
-                g[0] = a * g[0] + q * gauss(0.0, 1.0)
-                g[1] = a * g[1] + q * gauss(0.0, 1.0)
-                g[2] = a * g[2] + q * sw.vertical_gust_ratio * gauss(0.0, 1.0)
+                    self._gust_a = math.exp(-dtg / self._gust_tau)
+                    self._gust_q = self._gust_std * math.sqrt(1.0 - self._gust_a ** 2)
+                a, q, n = self._gust_a, self._gust_q, self._wind_normal
+                g[0] = a * g[0] + q * n()
+                g[1] = a * g[1] + q * n()
+                g[2] = a * g[2] + q * self._gust_vratio * n()
         ox, oy = v.x - cx, v.y - cy
         hx, hy = deck.half_x, deck.half_y
         surface = ztop if (-hx <= ox <= hx and -hy <= oy <= hy and v.z > ztop) else 0.0
@@ -361,6 +387,7 @@ class World:
         if thrust > self.max_thrust_n:
             self.max_thrust_n = thrust
         self.t_s = t
+        self._deck_now = dk
         resting = self.resting_on
         if resting is None:
             gear_z = v.z - p.gear_height_m
@@ -446,7 +473,7 @@ class World:
 
     def true_lidar_range(self) -> float | None:
         v = self.vehicle
-        cx, cy, ztop, _, _ = self.deck.state(self.t_s)
+        cx, cy, ztop, _, _ = self._deck_now
         return lidar_true_range((v.x, v.y, v.z), rot_body_to_world(v.roll, v.pitch, v.yaw),
                                 (cx, cy), ztop, (self.deck.half_x, self.deck.half_y))
 
@@ -486,7 +513,7 @@ class World:
         v = self.vehicle
         d = self.deck
         t = self.t_s
-        cx, cy, ztop, dvz, daz = d.state(t)
+        cx, cy, ztop, dvz, daz = self._deck_now
         over = abs(v.x - cx) <= d.half_x and abs(v.y - cy) <= d.half_y
         surface = ztop if over and v.z > ztop else 0.0
         g = self.gust
