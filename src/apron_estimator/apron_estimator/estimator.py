@@ -85,8 +85,7 @@ class ApronEstimator:
     # -- inputs ----------------------------------------------------------------------------
     def on_attitude(self, t_s: float, roll_rad: float, pitch_rad: float,
                     yaw_rad: float) -> None:
-        if not (_isfinite(t_s) and _isfinite(roll_rad) and _isfinite(pitch_rad)
-                and _isfinite(yaw_rad)):
+        if not _isfinite(t_s + roll_rad + pitch_rad + yaw_rad):   # overflow: on_local_position
             self._own['nan'] += 1
             return
         att = self._att
@@ -125,12 +124,16 @@ class ApronEstimator:
                           velocity_mps: Sequence[float]) -> None:
         """Vehicle local position / velocity, world ENU (GPS / EKF)."""
         try:
-            px, py, pz = (float(v) for v in position_m)
-            vx, vy, vz = (float(v) for v in velocity_mps)
+            px, py, pz = position_m
+            vx, vy, vz = velocity_mps
+            px, py, pz = float(px), float(py), float(pz)
+            vx, vy, vz = float(vx), float(vy), float(vz)
         except (TypeError, ValueError):
             self._own['nan'] += 1
             return
-        if not all(_isfinite(v) for v in (t_s, px, py, pz, vx, vy, vz)):
+        # a NaN/inf anywhere makes the sum non-finite (finite values near 1e308 could overflow
+        # and be rejected too; positions, speeds and stamps are nowhere near that)
+        if not _isfinite(t_s + px + py + pz + vx + vy + vz):
             self._own['nan'] += 1
             return
         if self._pos is not None and t_s <= self._pos[0]:
@@ -142,7 +145,8 @@ class ApronEstimator:
     def on_accel(self, t_s: float, accel_world_mps2: Sequence[float]) -> None:
         """Vehicle acceleration, ENU, gravity removed."""
         try:
-            ax, ay, az = (float(v) for v in accel_world_mps2)
+            ax, ay, az = accel_world_mps2
+            ax, ay, az = float(ax), float(ay), float(az)
         except (TypeError, ValueError):
             self._own['nan'] += 1
             return

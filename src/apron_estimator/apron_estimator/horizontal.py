@@ -169,7 +169,7 @@ class AccelIntegrator:
         self._vy.append(vy)
         self._xx.append(xx)
         self._xy.append(xy)
-        if len(ts) > 64 and ts[0] < t_s - 2.0 * self.history_s:
+        if ts[0] < t_s - 2.0 * self.history_s and len(ts) > 64:
             k = bisect_right(ts, t_s - self.history_s)
             for lst in (ts, self._ax, self._ay, self._vx, self._vy, self._xx, self._xy):
                 del lst[:k]
@@ -188,10 +188,12 @@ class AccelIntegrator:
 
     def displacement(self, t0: float, t1: float) -> tuple[float, float, float, float]:
         """(Δp_x, Δv_x, Δp_y, Δv_y) caused by the acceleration alone over [t0, t1]."""
-        if not self._t or t1 <= self._t[0]:
+        ts = self._t
+        if not ts or t1 <= ts[0]:
             return 0.0, 0.0, 0.0, 0.0
-        v0x, x0x, v0y, x0y = self.integrals(t0)
-        v1x, x1x, v1y, x1y = self.integrals(t1)
+        integrals = self.integrals
+        v0x, x0x, v0y, x0y = integrals(t0)
+        v1x, x1x, v1y, x1y = integrals(t1)
         dt = t1 - t0
         return x1x - x0x - v0x * dt, v1x - v0x, x1y - x0y - v0y * dt, v1y - v0y
 
@@ -268,7 +270,7 @@ class HorizontalTracker:
 
     def on_accel(self, t_s: float, ax: float, ay: float) -> None:
         """Vehicle horizontal acceleration, ENU, gravity removed."""
-        if not (math.isfinite(t_s) and math.isfinite(ax) and math.isfinite(ay)):
+        if not math.isfinite(t_s + ax + ay):   # NaN/inf anywhere (overflow needs ~1e308)
             self.rejected['nan'] += 1
             return
         if not self.accel.add(t_s, ax, ay):

@@ -180,13 +180,31 @@ class VerticalFilter:
         return [u[_SYM[i][k]] for i in range(5)]
 
     def _scalar_update(self, c: list[float], s: float, nu: float) -> None:
-        """x ← x + c ν/S, P ← P − c cᵀ/S with c = P Hᵀ (symmetric by construction)."""
+        """x ← x + c ν/S, P ← P − c cᵀ/S with c = P Hᵀ (symmetric by construction).
+
+        Unrolled over the 15 stored entries (the order of _UPPER); each entry is
+        ``p_ij − c_i c_j / S`` computed as ``p_ij − (c_i c_j)·(1/S)``, as filterpy's scalar
+        case (``test_predict_update_equal_filterpy``).
+        """
+        c0, c1, c2, c3, c4 = c
         f = nu / s
         x = self.x
-        for i in range(5):
-            x[i] += c[i] * f
+        x[0] += c0 * f
+        x[1] += c1 * f
+        x[2] += c2 * f
+        x[3] += c3 * f
+        x[4] += c4 * f
         inv = 1.0 / s
-        self._p = [pij - c[i] * c[j] * inv for pij, (i, j) in zip(self._p, _UPPER, strict=True)]
+        (p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34,
+         p44) = self._p
+        self._p = [
+            p00 - c0 * c0 * inv, p01 - c0 * c1 * inv, p02 - c0 * c2 * inv,
+            p03 - c0 * c3 * inv, p04 - c0 * c4 * inv,
+            p11 - c1 * c1 * inv, p12 - c1 * c2 * inv, p13 - c1 * c3 * inv, p14 - c1 * c4 * inv,
+            p22 - c2 * c2 * inv, p23 - c2 * c3 * inv, p24 - c2 * c4 * inv,
+            p33 - c3 * c3 * inv, p34 - c3 * c4 * inv,
+            p44 - c4 * c4 * inv,
+        ]
 
     def _advance(self, src: str, t_s: float) -> bool:
         """Common stamp handling: per-source order, late tolerance, prediction."""
@@ -215,8 +233,9 @@ class VerticalFilter:
 
     def on_altitude(self, t_s: float, z_m: float, vz_mps: float | None = None) -> None:
         """Vehicle altitude (local position z, ENU) and optionally its vertical speed."""
-        if not (math.isfinite(t_s) and math.isfinite(z_m)) or (
-                vz_mps is not None and not math.isfinite(vz_mps)):
+        # one isfinite on the sum: a NaN/inf anywhere makes it non-finite (two finite values
+        # near 1e308 could overflow and be rejected too: no time or altitude is that large)
+        if not math.isfinite(t_s + z_m + (0.0 if vz_mps is None else vz_mps)):
             self.rejected['nan'] += 1
             return
         if not self._advance('alt', t_s):
@@ -225,19 +244,21 @@ class VerticalFilter:
             self._alt = (z_m, vz_mps)
             return
         p = self.params
-        s = self._p[0] + p.sigma_altitude_m ** 2
+        u = self._p
+        s = u[0] + p.sigma_altitude_m ** 2
         nu = z_m - self.x[0]
         if nu * nu / s > p.altitude_gate:
             self.rejected['altitude_gated'] += 1
         else:
-            self._scalar_update(self._column(0), s, nu)
+            self._scalar_update(u[0:5], s, nu)          # column 0 of P (H = e0)
         if vz_mps is not None and p.use_vz:
-            s = self._p[5] + p.sigma_vz_mps ** 2
+            u = self._p
+            s = u[5] + p.sigma_vz_mps ** 2
             nu = vz_mps - self.x[1]
             if nu * nu / s > p.altitude_gate:
                 self.rejected['altitude_gated'] += 1
             else:
-                self._scalar_update(self._column(1), s, nu)
+                self._scalar_update((u[1], u[5], u[6], u[7], u[8]), s, nu)   # column 1
 
     def on_lidar(self, t_s: float, range_m: float | None, roll_rad: float = 0.0,
                  pitch_rad: float = 0.0) -> None:
@@ -245,8 +266,7 @@ class VerticalFilter:
         if range_m is None:
             self.rejected['dropout'] += 1
             return
-        if not (math.isfinite(t_s) and math.isfinite(range_m) and math.isfinite(roll_rad)
-                and math.isfinite(pitch_rad)):
+        if not math.isfinite(t_s + range_m + roll_rad + pitch_rad):   # overflow: see on_altitude
             self.rejected['nan' if not math.isinf(range_m) else 'dropout'] += 1
             return
         p = self.params
@@ -267,7 +287,7 @@ class VerticalFilter:
             return
         r = p.sigma_lidar_m ** 2
         u = self._p
-        c = [u[0] - u[2], u[1] - u[6], u[2] - u[9], u[3] - u[10], u[4] - u[11]]
+        c = (u[0] - u[2], u[1] - u[6], u[2] - u[9], u[3] - u[10], u[4] - u[11])
         s = c[0] - c[2] + r
         nu = h - (self.x[0] - self.x[2])
         thr = max(p.jump_threshold_m, p.jump_sigma * math.sqrt(max(s, 0.0)))

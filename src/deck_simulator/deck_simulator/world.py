@@ -367,17 +367,18 @@ class World:
                 g[0] = a * g[0] + q * n()
                 g[1] = a * g[1] + q * n()
                 g[2] = a * g[2] + q * self._gust_vratio * n()
-        ox, oy = v.x - cx, v.y - cy
+        x0, y0 = v.x, v.y
+        ox, oy = x0 - cx, y0 - cy
         hx, hy = deck.half_x, deck.half_y
         surface = ztop if (-hx <= ox <= hx and -hy <= oy <= hy and v.z > ztop) else 0.0
-        x0, y0 = v.x, v.y
         fs = self.faults
+        wmx, wmy = self.wind_mean
         if fs is None:
-            v.step(h, surface, self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2])
+            v.step(h, surface, wmx + g[0], wmy + g[1], g[2])
         else:
             if fs.pending:
                 fs.update_height(self.t_s, v.z - surface)
-            wx, wy, wz = self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2]
+            wx, wy, wz = wmx + g[0], wmy + g[1], g[2]
             if fs.wind:
                 ws = fs.wind_step(self.t_s)
                 if ws is not None:

@@ -126,11 +126,19 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     t_contact = None
     mode = Mode.IDLE
     started = False
+    settle_s = config.settle_after_contact_s
+    landed = Mode.LANDED
+    # bound once: the loop below runs physics_hz times per simulated second
+    world_step = world.step
+    planner_step = planner.step
+    altitude_step = altitude.step
+    horizontal_step = horizontal.step
 
     for k in range(n_steps + 1):
         t = k * dt
+        ctrl = k % ctrl_div == 0
         frame = world.read_camera() if k % cam_div == 0 else None
-        if k % ctrl_div == 0:
+        if ctrl:
             # --- mavlink_bridge: vehicle state from the autopilot -------------------------
             pos, vel = world.read_local_position()
             roll, pitch, yaw = world.read_attitude()
@@ -141,17 +149,16 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
         if frame is not None:
             # --- pixy_driver: the frame arrives now, stamped at its (earlier) exposure -------
             estimator.on_camera(frame[0], [PixyBlock(*b) for b in frame[1]])
-        if k % ctrl_div == 0:
+        if ctrl:
             # --- apron_estimator -> landing_planner -------------------------------------
             apron = estimator.state(t)
             if not started:
                 planner.start_landing(t)
                 started = True
-            vehicle = VehicleState(t_s=t, position_m=pos, velocity_mps=vel, roll_rad=roll,
-                                   pitch_rad=pitch, yaw_rad=yaw)
-            out = planner.step(t, dt_ctrl, vehicle, apron)
+            vehicle = VehicleState(t, pos, vel, roll, pitch, yaw)
+            out = planner_step(t, dt_ctrl, vehicle, apron)
             mode = out.mode
-            roll_cmd, pitch_cmd = horizontal.step(out.setpoint_m, out.velocity_ff_mps,
+            roll_cmd, pitch_cmd = horizontal_step(out.setpoint_m, out.velocity_ff_mps,
                                                   (pos[0], pos[1]), (vel[0], vel[1]), yaw,
                                                   dt_ctrl, precise=out.precise_xy)
             # --- dob_altitude ------------------------------------------------------------
@@ -162,17 +169,16 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                 vframe = new_frame
             inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, vframe,
                                  roll, pitch, surface_accel_ff=config.surface_accel_ff)
-            alt_out = altitude.step(inp, dt_ctrl)
+            alt_out = altitude_step(inp, dt_ctrl)
             thrust = alt_out.thrust_n if out.thrust_enabled else 0.0
             world.command_link(t, roll_cmd, pitch_cmd, out.yaw_rad, thrust)
             if config.record:
                 truth = world.truth()
                 _record(trace, t, pos, truth, vert, apron, out, alt_out, modes.index(mode))
-        world.step(dt)
-        if world.contact is not None and t_contact is None:
+        world_step(dt)
+        if t_contact is None and world.contact is not None:
             t_contact = world.t_s
-        if t_contact is not None and (world.t_s - t_contact >= config.settle_after_contact_s
-                                      or mode is Mode.LANDED):
+        if t_contact is not None and (world.t_s - t_contact >= settle_s or mode is landed):
             break
 
     outcome = world.outcome()

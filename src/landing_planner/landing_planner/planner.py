@@ -151,8 +151,14 @@ class _Path:
 
 
 def _finite(*values: float) -> bool:
+    """True if every value is a finite number (False for non-numbers).
+
+    One ``isfinite`` on the sum: a NaN or inf anywhere makes the sum non-finite. Caveat:
+    finite values whose sum overflows (beyond ~1.8e308) are reported non-finite too; no
+    planner input (times, metres, m/s, radians) comes anywhere near that.
+    """
     try:
-        return all(math.isfinite(v) for v in values)
+        return math.isfinite(sum(values))
     except TypeError:
         return False
 
@@ -541,10 +547,8 @@ class LandingPlanner:
         p = self.params
         mode = self.mode
         latch = self._l
-        stop_here = (self._zref.stopping_point() if self._zref_ok else 0.0,
-                     p.vertical_speed_mps)
         if paused:
-            return stop_here
+            return self._stop_here()
         contact = p.gear_height_m - p.final_press_m
         if self._vframe == VERTICAL_WORLD_RATE:
             # deck-blind ramp toward a floor below the surface at a constant world rate
@@ -555,7 +559,7 @@ class LandingPlanner:
             return latch.hold_height_m, p.vertical_speed_mps
         if mode is Mode.DESCEND:
             if not target_ok:
-                return stop_here   # momentarily not seen: hold height, keep the timer running
+                return self._stop_here()   # momentarily not seen: hold height, timer runs on
             margin = min(0.2, 0.5 * (p.final_approach_height_m - p.gear_height_m))
             return p.final_approach_height_m - margin, p.descent_speed_mps
         if mode is Mode.FINAL:
@@ -576,7 +580,12 @@ class LandingPlanner:
                 latch.hold_height_m = self._zref.z_m
             return latch.hold_height_m, p.vertical_speed_mps
         # LANDED: come to rest where the reference is
-        return stop_here
+        return self._stop_here()
+
+    def _stop_here(self) -> tuple[float, float]:
+        """Target 'stop where the braking reference comes to rest' (evaluated only if used)."""
+        return (self._zref.stopping_point() if self._zref_ok else 0.0,
+                self.params.vertical_speed_mps)
 
     def _update_horizontal(self, t_s: float, dt_s: float, target_ok: bool,
                            apron: ApronState) -> None:
