@@ -67,16 +67,20 @@ def stopping_displacement(v: float, a: float, accel: float, jerk: float) -> floa
         if v_rel >= 0.0:
             return x_rel
         return x_rel - stopping_displacement(-v_rel, 0.0, accel, jerk)
-    a = min(a, accel)
+    if a > accel:
+        a = accel
     a_p = math.sqrt(J * v + 0.5 * a * a)
     if a_p > accel:
         a_p = accel
-    t1 = (a + a_p) / J
-    x1, v1, _ = _advance(v, a, -J, t1)
+    # the three phases, _advance written out (this runs several times per planner step)
+    t1 = (a + a_p) / J                                   # ramp a → −a_p at −J
+    x1 = v * t1 + 0.5 * a * t1 * t1 + -J * t1 * t1 * t1 / 6.0
+    v1 = v + a * t1 + 0.5 * -J * t1 * t1
     t2 = max((v1 - a_p * a_p / (2.0 * J)) / a_p, 0.0) if a_p > 0.0 else 0.0
-    x2 = v1 * t2 - 0.5 * a_p * t2 * t2
+    x2 = v1 * t2 - 0.5 * a_p * t2 * t2                   # hold −a_p
     v2 = v1 - a_p * t2
-    x3 = _advance(v2, -a_p, J, a_p / J)[0]
+    t3 = a_p / J                                         # ramp −a_p → 0 at +J
+    x3 = v2 * t3 + 0.5 * -a_p * t3 * t3 + J * t3 * t3 * t3 / 6.0
     return x1 + x2 + x3
 
 
@@ -160,11 +164,12 @@ class ReferenceGenerator:
         best = None
         cands = ((j_v, 0.5 * j_v, 0.2 * j_v, 0.05 * j_v, 0.0, -J) if j_v > 0.0
                  else (j_v, -J))
+        limit = d + _TOL_M
         for j in cands:
-            a1 = max(-A, min(A, a + j * dt_s))
-            jj = (a1 - a) / dt_s
-            x1, v1, _ = _advance(v, a, jj, dt_s)
-            if x1 + stopping_displacement(v1, a1, A, J) <= d + _TOL_M:
+            a1 = a + j * dt_s
+            a1 = A if a1 > A else (-A if a1 < -A else a1)
+            x1, v1, _ = _advance(v, a, (a1 - a) / dt_s, dt_s)
+            if x1 + stopping_displacement(v1, a1, A, J) <= limit:
                 best = (x1, v1, a1)
                 break
         if best is None:
