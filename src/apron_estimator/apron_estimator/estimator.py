@@ -221,7 +221,7 @@ class ApronEstimator:
                 return vf.last_range_m
             return None
         if vf.valid_at(t_s):
-            h = vf.state(t_s).height_m
+            h = vf.height_at(t_s)
             if h > 0.0:
                 return h
         if vf.last_h_m is not None and self._recent_lidar(t_s):

@@ -360,6 +360,16 @@ class VerticalFilter:
         return (self.initialised and self.t_lidar_ok is not None
                 and t_s - self.t_lidar_ok <= self.params.lidar_timeout_s)
 
+    def height_at(self, t_s: float) -> float:
+        """``state(t_s).height_m`` alone (same arithmetic, nothing else built); NaN if the
+        filter is not initialised."""
+        if not self.initialised or not math.isfinite(t_s):
+            return math.nan
+        x = self.x
+        dt = t_s - self.t
+        dp = self.accel.displacement(self.t, t_s)[0] if dt > 0.0 else 0.0
+        return (x[0] + x[1] * dt + dp) - (x[2] + x[3] * dt + 0.5 * dt * dt * x[4])
+
     def state(self, t_s: float) -> VerticalState:
         """Predicted (mean only) to t_s; does not change the filter. t_s may be slightly in
         the past (camera exposure stamps): the same kinematics are extrapolated backwards."""

@@ -111,6 +111,7 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     planner = LandingPlanner(planner_params_for(scenario, config))
     altitude = make_altitude_controller(config)
     vframe = 'surface'
+    vmode = None   # the planner's last vertical_mode string
     horizontal = HorizontalController(HorizontalParams(**dict(config.horizontal_overrides)))
 
     result = RunResult(seed=seed, scenario=scenario.name, controller=config.controller)
@@ -163,10 +164,12 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                                                   dt_ctrl, precise=out.precise_xy)
             # --- dob_altitude ------------------------------------------------------------
             vert = apron.vertical
-            new_frame = parse_vertical_frame(out.vertical_mode)
-            if new_frame != vframe:  # the node resets on a frame switch too
-                altitude.reset()
-                vframe = new_frame
+            if out.vertical_mode != vmode:   # parse only when the planner's mode changes
+                vmode = out.vertical_mode
+                new_frame = parse_vertical_frame(vmode)
+                if new_frame != vframe:  # the node resets on a frame switch too
+                    altitude.reset()
+                    vframe = new_frame
             inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, vframe,
                                  roll, pitch, surface_accel_ff=config.surface_accel_ff)
             alt_out = altitude_step(inp, dt_ctrl)

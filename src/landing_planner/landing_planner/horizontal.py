@@ -113,7 +113,9 @@ class HorizontalController:
         except (TypeError, ValueError, IndexError):
             self.rejected['nan'] += 1
             return self._last
-        if not all(map(math.isfinite, (sx, sy, fx, fy, px, py, vx, vy, yaw))):
+        # a NaN/inf anywhere makes the sum non-finite (finite inputs would have to be near
+        # 1e308 to overflow it; positions, speeds and angles never are)
+        if not math.isfinite(sx + sy + fx + fy + px + py + vx + vy + yaw):
             self.rejected['nan'] += 1
             return self._last
         if not (math.isfinite(dt_s) and dt_s > 0.0):
