@@ -178,7 +178,8 @@ class AccelIntegrator:
     def integrals(self, t_s: float) -> tuple[float, float, float, float]:
         """(V_x, X_x, V_y, X_y) at t_s."""
         ts = self._t
-        k = bisect_right(ts, t_s) - 1
+        # usually asked at or after the newest sample (state "now"): no search needed
+        k = len(ts) - 1 if ts and t_s >= ts[-1] else bisect_right(ts, t_s) - 1
         if k < 0:
             return 0.0, 0.0, 0.0, 0.0
         dt = t_s - ts[k]
