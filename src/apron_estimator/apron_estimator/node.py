@@ -1,6 +1,6 @@
 """ROS 2 adapter of the apron estimator (paper §2.3-2.4, (27)-(35); see the package README).
 
-Thin: parameters, topics, a timer and message unpacking. The algorithm is
+Thin: parameters, topics, message unpacking and a 1 Hz diagnostics timer. The algorithm is
 :class:`apron_estimator.estimator.ApronEstimator`, fed exactly as the in-process runner
 (`deckland.runner`) feeds it; the pure conversions are in :mod:`apron_estimator.inputs`.
 
@@ -13,15 +13,27 @@ Inputs (each message's ``header.stamp`` is its ``t_s``, in the node clock's doma
 * ``vehicle/range`` → ``on_lidar`` (±inf / outside [min_range, max_range] → None);
 * ``pixy/blocks`` → ``on_camera`` (stamp = exposure time set by the driver).
 
-Every ``1/rate_hz`` s the timer publishes ``state(now)``: ``apron/state`` (``apron_state_v1``),
-``apron/visible``, ``apron/odom`` (while tracked, unless ``odom_when_untracked``) and
-``apron/relative`` / ``apron/relative_velocity`` (while tracked). If the attitude or the local
-position is stale (older than ``input_timeout_s``, or never received) nothing is published, so
-downstream nodes see ``apron/state`` go stale and withhold their commands.
+Event-driven output (no free-running timer): ``state(now)`` is published
+
+* on each accepted ``vehicle/imu`` message — the autopilot's ~100 Hz attitude stream is the
+  control clock of the whole chain (planner and altitude loop step on each ``apron/state``) —
+  unless the previous IMU-triggered publication is less than ``0.5 / rate_hz`` old (a bunched
+  or faster IMU stream is thinned to the control rate);
+* at once after each accepted ``pixy/blocks`` frame has been processed, so a new image reaches
+  the commands without waiting for the next IMU message.
+
+Each publication is ``apron/state`` (``apron_state_v1``), ``apron/visible``, ``apron/odom``
+(while tracked, unless ``odom_when_untracked``) and ``apron/relative`` /
+``apron/relative_velocity`` (while tracked), all for the same ``now``; ``t_s`` strictly
+increases. If the attitude or the local position is stale (older than ``input_timeout_s``, or
+never received) nothing is published (counted in ``withheld``), so downstream nodes see
+``apron/state`` go stale and withhold their commands; when every input stops, nothing triggers
+a publication at all and the 1 Hz diagnostics report the reason.
 """
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import MISSING, fields
 import math
 import re
@@ -153,7 +165,10 @@ def _nonempty(name: str, default: str, description: str) -> ParamSpec:
 
 
 NODE_PARAMS = [
-    ParamSpec('rate_hz', 100.0, 'rate of state(now) and of the published outputs',
+    ParamSpec('rate_hz', 100.0,
+              'control rate: a vehicle/imu message publishes the state unless the previous '
+              'IMU-triggered publication is less than 0.5/rate_hz old (camera frames always '
+              'publish at once)',
               lambda v: 1.0 <= v <= 1000.0, 'must be in [1, 1000]'),
     positive('input_timeout_s', 0.5,
              'inputs older (or newer) than this vs the node clock are rejected; no output '
@@ -205,6 +220,9 @@ class ApronEstimatorNode(Node):
         self.pairer = LocalPositionPairer(p['position_pair_tolerance_s'])
         self._timeout_s = p['input_timeout_s']
         self._g = p['gravity_mps2']
+        self._imu_min_spacing_s = 0.5 / p['rate_hz']
+        self._odom_when_untracked = p['odom_when_untracked']
+        self._clock = self.get_clock()
         vp = self.estimator.params.vertical
         # world surface height/velocity uncertainty (see README, Node: apron/odom covariance)
         self._surface_var = vp.sigma_altitude_m ** 2 + vp.sigma_lidar_m ** 2
@@ -219,8 +237,12 @@ class ApronEstimatorNode(Node):
             'bad_quaternion': 0, 'non_finite': 0, 'out_of_order': 0, 'implausible': 0}
         #: timer ticks that published nothing, by reason
         self.withheld: dict[str, int] = {'no_attitude': 0, 'no_position': 0,
-                                         'non_finite_output': 0}
+                                         'non_finite_output': 0, 'clock_not_advancing': 0}
+        #: publications by trigger; IMU messages not publishing (closer than 0.5/rate_hz)
+        self.triggers: dict[str, int] = {'imu': 0, 'camera': 0, 'imu_thinned': 0}
         self.published = 0
+        self._t_published = -math.inf      # t_s of the last published state
+        self._t_imu_published = -math.inf  # node time of the last IMU-triggered publication
         self._published_at_diag = 0
         self._withheld_reason = 'starting'
         self.last_state = None
@@ -238,16 +260,36 @@ class ApronEstimatorNode(Node):
         self.create_subscription(TwistStamped, 'vehicle/velocity', self._on_velocity,
                                  SENSOR_QOS)
         self.create_subscription(Range, 'vehicle/range', self._on_range, SENSOR_QOS)
-        self.create_timer(1.0 / p['rate_hz'], self._on_timer)
+        self._build_messages(p)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
-            f"apron estimator at {p['rate_hz']:g} Hz, FOV {p['camera.fov_x_deg']:g}x"
+            f"apron estimator clocked by vehicle/imu (<= {2 * p['rate_hz']:g} Hz) and "
+            f"pixy/blocks, FOV {p['camera.fov_x_deg']:g}x"
             f"{p['camera.fov_y_deg']:g} deg, paper_exact={p['camera.paper_exact']}")
 
     # --- helpers ---------------------------------------------------------------------------
 
     def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+        return self._clock.now().nanoseconds * 1e-9
+
+    def _build_messages(self, p: dict) -> None:
+        """Output messages built once and refilled per publication (publish serialises)."""
+        st = Float64MultiArray()
+        st.layout.dim = [MultiArrayDimension(label=APRON_STATE_LAYOUT, size=APRON_STATE_V1_LEN,
+                                             stride=APRON_STATE_V1_LEN)]
+        self._msg_state = st
+        self._msg_visible = Bool()
+        od = Odometry()
+        od.header.frame_id = p['map_frame']
+        od.child_frame_id = p['apron_frame']
+        od.pose.pose.orientation.w = 1.0  # apron axes = map axes (its heading is not observed)
+        self._msg_odom = od
+        rel = PointStamped()
+        rel.header.frame_id = p['relative_frame']
+        self._msg_rel = rel
+        vel = Vector3Stamped()
+        vel.header.frame_id = p['relative_frame']
+        self._msg_rel_vel = vel
 
     def _reject(self, reason: str, what: str) -> None:
         self.rejected[reason] += 1
@@ -288,11 +330,18 @@ class ApronEstimatorNode(Node):
         acc = world_accel_from_specific_force(q, (a.x, a.y, a.z), self._g)
         if acc is None:
             self._reject('non_finite', 'vehicle/imu linear_acceleration')
-            return
-        if max(abs(a.x), abs(a.y), abs(a.z)) > MAX_SPECIFIC_FORCE_MPS2:
+        elif max(abs(a.x), abs(a.y), abs(a.z)) > MAX_SPECIFIC_FORCE_MPS2:
             self._reject('implausible', 'vehicle/imu linear_acceleration (beyond 16 g)')
+        else:
+            self.estimator.on_accel(t, acc)
+        # the attitude was accepted: this message is a tick of the control clock
+        now = self._now_s()
+        if now - self._t_imu_published < self._imu_min_spacing_s:
+            self.triggers['imu_thinned'] += 1
             return
-        self.estimator.on_accel(t, acc)
+        if self._publish(now):
+            self._t_imu_published = now
+            self.triggers['imu'] += 1
 
     def _on_odom(self, msg: Odometry) -> None:
         t = self._stamp(msg.header, 'vehicle/odom')
@@ -336,6 +385,8 @@ class ApronEstimatorNode(Node):
             return
         self.last_stamp['camera'] = t
         self.estimator.on_camera(t, blocks)
+        if self._publish(self._now_s()):  # the processed frame goes out at once
+            self.triggers['camera'] += 1
 
     # --- output ----------------------------------------------------------------------------
 
@@ -348,13 +399,15 @@ class ApronEstimatorNode(Node):
             return 'no_position'
         return ''
 
-    def _on_timer(self) -> None:
-        now = self._now_s()
+    def _publish(self, now: float) -> bool:
+        """Publish ``state(now)`` and the derived outputs; False (counted) if withheld."""
         reason = self._withhold_reason(now)
+        if not reason and now <= self._t_published:
+            reason = 'clock_not_advancing'   # downstream rejects repeated or older t_s
         if not reason:
             st = self.estimator.state(now)
             data = st.to_array()
-            if any(math.isnan(x) for x in data):  # defensive: the core never does this
+            if any(map(math.isnan, data)):  # defensive: the core never does this
                 reason = 'non_finite_output'
         if reason:
             self.withheld[reason] += 1
@@ -362,43 +415,41 @@ class ApronEstimatorNode(Node):
                 self.get_logger().warn(f'publishing no apron state: {reason}',
                                        throttle_duration_sec=2.0)
             self._withheld_reason = reason
-            return
+            return False
         self._withheld_reason = ''
         self.last_state = st
+        self._t_published = now
         self.published += 1
 
-        msg = Float64MultiArray()
-        msg.layout.dim = [MultiArrayDimension(label=APRON_STATE_LAYOUT, size=APRON_STATE_V1_LEN,
-                                              stride=APRON_STATE_V1_LEN)]
-        msg.data = data
+        msg = self._msg_state
+        msg.data = array('d', data)
         self.pub_state.publish(msg)
-        self.pub_visible.publish(Bool(data=st.visible))
-        if st.tracked or self.cfg['odom_when_untracked']:
+        vis = self._msg_visible
+        vis.data = st.visible
+        self.pub_visible.publish(vis)
+        if st.tracked or self._odom_when_untracked:
             self.pub_odom.publish(self._odom(st, now))
         if st.tracked:
-            rel = PointStamped()
+            rel = self._msg_rel
             s_to_stamp(now, rel.header.stamp)
-            rel.header.frame_id = self.cfg['relative_frame']
             rel.point.x, rel.point.y = st.rel_position_body_m
             rel.point.z = -st.vertical.height_m if st.vertical.valid else 0.0
-            vel = Vector3Stamped()
-            vel.header = rel.header
+            vel = self._msg_rel_vel
+            s_to_stamp(now, vel.header.stamp)
             vel.vector.x, vel.vector.y = st.rel_velocity_body_mps
             vel.vector.z = st.vertical.closing_speed_mps if st.vertical.valid else 0.0
             self.pub_rel.publish(rel)
             self.pub_rel_vel.publish(vel)
+        return True
 
     def _odom(self, st, now: float) -> Odometry:
         """apron/odom: (apron x, y, surface height), (apron vx, vy, surface vz) in map."""
         v = st.vertical
-        od = Odometry()
+        od = self._msg_odom
         s_to_stamp(now, od.header.stamp)
-        od.header.frame_id = self.cfg['map_frame']
-        od.child_frame_id = self.cfg['apron_frame']
         pos = od.pose.pose.position
         pos.x, pos.y = st.apron_position_m
         pos.z = v.surface_height_m if v.valid else 0.0
-        od.pose.pose.orientation.w = 1.0  # apron axes = map axes (its heading is not observed)
         lin = od.twist.twist.linear
         lin.x, lin.y = st.apron_velocity_mps
         lin.z = v.surface_vz_mps if v.valid else 0.0
@@ -409,14 +460,12 @@ class ApronEstimatorNode(Node):
             var_x = var_y = var_vx = var_vy = UNKNOWN_VAR
         var_z, var_vz = ((self._surface_var, self._surface_v_var) if v.valid
                          else (UNKNOWN_VAR, UNKNOWN_VAR))
-        pc = [0.0] * 36
+        pc = od.pose.covariance
         pc[0], pc[7], pc[14] = var_x, var_y, var_z
         pc[21] = pc[28] = pc[35] = UNKNOWN_VAR
-        tc = [0.0] * 36
+        tc = od.twist.covariance
         tc[0], tc[7], tc[14] = var_vx, var_vy, var_vz
         tc[21] = tc[28] = tc[35] = UNKNOWN_VAR
-        od.pose.covariance = pc
-        od.twist.covariance = tc
         return od
 
     def _rel_velocity_var(self, now: float) -> tuple[float, float]:
@@ -433,6 +482,8 @@ class ApronEstimatorNode(Node):
         now = self._now_s()
         rate = self.published - self._published_at_diag  # the timer runs at 1 Hz
         self._published_at_diag = self.published
+        if not rate:  # nothing triggered a publication (all inputs stopped?): say why
+            self._withheld_reason = self._withhold_reason(now) or self._withheld_reason
         status = DiagnosticStatus(name='apron_estimator: apron state', hardware_id='pixy')
         st = self.last_state
         if self._withheld_reason:
@@ -447,6 +498,7 @@ class ApronEstimatorNode(Node):
             values[f'age_{name}_s'] = 'inf' if t is None else f'{now - t:.3f}'
         values.update({f'rejected_{k}': str(v) for k, v in self.rejected.items()})
         values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
+        values.update({f'trigger_{k}': str(v) for k, v in self.triggers.items()})
         values.update({f'core_rejected_{k}': str(v)
                        for k, v in self.estimator.rejected.items()})
         if st is not None:
