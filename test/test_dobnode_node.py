@@ -300,3 +300,39 @@ def test_main_exits_with_status_2_on_a_bad_parameter(capsys):
     from dob_altitude.node import main
     assert main(['--ros-args', '-p', 'gains_profile:=fast']) == 2
     assert 'gains_profile' in capsys.readouterr().err
+
+
+def test_every_apron_state_is_answered_in_its_callback(ros_context):
+    """Event-driven: a burst of five apron states 2 ms apart (faster than any 100 Hz timer)
+    gives five thrust commands, stamped with exactly those five t_s; a timer-clocked loop
+    would step on the latest state only, once per period. The reference used is the latest
+    received (here the helper's, unchanged), so each command still follows (16)."""
+    context, executor = ros_context
+    node = make_node(context, executor)
+    helper = Helper(context, executor, height_m=1.8, z_d_m=2.0)
+    helper.start(node)
+    assert wait_for(lambda: len(helper.pairs()) >= 10)
+    helper.publish_apron = False
+    time.sleep(0.05)    # the helper's last apron state is handled; the rest stays fresh
+    sent = []
+    for _ in range(5):
+        t = helper.now_s()
+        data = replace(helper.base_state, t_s=t, vertical=helper.vertical).to_array()
+        msg = helper._Float64MultiArray(data=data)
+        msg.layout.dim = [helper._Dim(label=helper.label, size=len(data), stride=len(data))]
+        helper.pub_apron.publish(msg)
+        sent.append(t)
+        time.sleep(0.002)
+
+    def answered():
+        with helper.lock:
+            stamps = [w.header.stamp.sec + w.header.stamp.nanosec * 1e-9
+                      for _, w in helper.thrust]
+        return [t for t in sent if min(abs(s - t) for s in stamps) < 1e-6]
+    assert wait_for(lambda: len(answered()) == 5, 2.0), (answered(), sent, node.withheld)
+    e = -0.2
+    sigma = 10.47 * e / math.sqrt(e * e + 1.0)
+    for wrench, obs in helper.pairs()[-5:]:
+        assert obs.vector.x == pytest.approx(sigma, rel=1e-9)   # (14), ė = 0
+        expected = M / gamma(1.85) * (G - 0.85 * sigma - obs.vector.y)  # (16)
+        assert wrench.wrench.force.z == pytest.approx(expected, rel=1e-9)

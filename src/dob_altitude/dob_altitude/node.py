@@ -1,23 +1,31 @@
-"""ROS 2 adapter of the altitude loop: the DOB (paper §3.1, (14)-(19)) or PID core at 100 Hz.
+"""ROS 2 adapter of the altitude loop: the DOB (paper §3.1, (14)-(19)) or PID core.
 
-Thin: parameters, topics, a timer and message conversions. The controller comes from
+Thin: parameters, topics, a watchdog timer and message conversions. The controller comes from
 :func:`dob_altitude.adapter.make_controller` and its input from
 :func:`dob_altitude.adapter.altitude_input` — the same wiring the in-process runner uses.
 
-Loop (every ``1/rate_hz`` s of the node clock):
+Event-driven loop: the controller steps *in the ``apron/state`` callback*, once per new
+accepted apron state (the estimator publishes one per autopilot IMU message, ~100 Hz, and one
+per processed camera frame), and ``control/thrust`` is published right there — no timer wait.
 
-1. Withhold (publish nothing, count the reason, reset the controller when inputs return) if
-   ``control/enabled`` is False, or any of ``apron/state``, ``planner/reference``,
-   ``vehicle/imu`` was never received or its stamp is older than ``input_timeout_s``, or the
-   vertical estimate is not valid. Downstream the bridge then stops streaming and the
-   autopilot's offboard-loss failsafe takes over; a NaN is never published.
-2. Step the controller once per *new* apron state (a tick without one publishes nothing), with
-   dt = the difference of the ``ApronState.t_s`` stamps of the two samples (the interval over
-   which σ of (14) changed; the first step after a reset uses 1/rate_hz, which the cores
-   ignore).
+1. Withhold (publish nothing, count the reason, reset the controller so it restarts bumpless
+   when inputs return) if ``control/enabled`` is False, or any of ``apron/state``,
+   ``planner/reference``, ``vehicle/imu`` was never received or its stamp is older than
+   ``input_timeout_s``, or the vertical estimate is not valid. A watchdog timer (period
+   ``input_timeout_s / 2``) applies the same test when no apron state arrives at all, so the
+   staleness is counted and the controller reset even when nothing triggers a step.
+   Downstream the bridge then stops streaming and the autopilot's offboard-loss failsafe takes
+   over; a NaN is never published.
+2. The step uses dt = the difference of the ``ApronState.t_s`` stamps of the two samples (the
+   interval over which σ of (14) changed; the first step after a reset uses 1/rate_hz, which
+   the cores ignore) and the *latest* ``planner/reference``. The planner steps on the same
+   apron state, so its reference for that state usually arrives after this step: the
+   reference used is then the previous one (one apron state, ≤ ~10 ms, old). Accepted: the
+   reference is a smooth jerk-limited trajectory, and waiting for it would add a hop of
+   latency to every command (README, Node: ordering).
 3. Publish ``control/thrust`` (force.z = u_z, N) and ``altitude/observer`` (σ, d̂, e_z), both
    stamped with the ``t_s`` of the apron state used, so a consumer measures end-to-end latency
-   as (its clock − header.stamp).
+   as (its clock − header.stamp) and the bench maps each setpoint to its camera frame.
 """
 
 from __future__ import annotations
@@ -82,7 +90,9 @@ PARAMS = [
     ParamSpec('surface_accel_feedforward', False,
               "feed the estimated surface acceleration forward ('surface' frame only; "
               'beyond the paper)'),
-    ParamSpec('rate_hz', 100.0, 'control loop rate (paper: 100 Hz)',
+    ParamSpec('rate_hz', 100.0,
+              'nominal control rate (paper: 100 Hz); the loop steps per apron/state, '
+              '1/rate_hz is only the dt of the first step after a reset',
               lambda v: 1.0 <= v <= 1000.0, 'must be in [1, 1000]'),
     positive('input_timeout_s', 0.2,
              'max age of apron/state, planner/reference and vehicle/imu stamps; older = stale'),
@@ -121,9 +131,9 @@ class DobAltitudeNode(Node):
         self._offset_m = p['rotor_height_offset_m']
         self._ff = p['surface_accel_feedforward']
         self._frame_id = p['base_frame']
+        self._clock = self.get_clock()
 
         self._apron: ApronState | None = None
-        self._apron_new = False
         self._ref: _Reference | None = None
         self._att: tuple[float, float, float] | None = None  # roll, pitch, stamp_s
         self._enabled = True
@@ -136,12 +146,11 @@ class DobAltitudeNode(Node):
         self.rejected: dict[str, int] = {
             'non_finite': 0, 'bad_size': 0, 'bad_layout': 0, 'out_of_order': 0,
             'stale_stamp': 0, 'future_stamp': 0, 'bad_frame': 0, 'bad_quaternion': 0}
-        #: ticks that published nothing, by reason
+        #: apron states (and watchdog checks without one) that published nothing, by reason
         self.withheld: dict[str, int] = {
             'disabled': 0, 'stale': 0, 'invalid_vertical': 0, 'non_finite_output': 0}
-        #: controller steps, resets, frame switches, ticks without a new apron state
-        self.counts: dict[str, int] = {'steps': 0, 'resets': 0, 'frame_switches': 0,
-                                       'no_new_state': 0}
+        #: controller steps, resets, frame switches
+        self.counts: dict[str, int] = {'steps': 0, 'resets': 0, 'frame_switches': 0}
 
         self.pub_thrust = self.create_publisher(WrenchStamped, 'control/thrust', RELIABLE_QOS)
         self.pub_observer = self.create_publisher(Vector3Stamped, 'altitude/observer',
@@ -152,17 +161,21 @@ class DobAltitudeNode(Node):
                                  self._on_reference, RELIABLE_QOS)
         self.create_subscription(Imu, 'vehicle/imu', self._on_imu, SENSOR_QOS)
         self.create_subscription(Bool, 'control/enabled', self._on_enabled, LATCHED_QOS)
-        self.create_timer(self._period_s, self._on_timer)
+        self._msg_thrust = WrenchStamped()
+        self._msg_thrust.header.frame_id = self._frame_id
+        self._msg_observer = Vector3Stamped()
+        self._msg_observer.header.frame_id = self._frame_id
+        self.create_timer(self._timeout_s / 2.0, self._on_watchdog)
         self.create_timer(1.0, self._publish_diagnostics)
         self._steps_at_diag = 0
         self.get_logger().info(
-            f"{p['controller']} altitude loop at {p['rate_hz']:g} Hz, profile "
+            f"{p['controller']} altitude loop stepped per apron/state, profile "
             f"{p['gains_profile']!r}, overrides {overrides}")
 
     # --- helpers ---------------------------------------------------------------------------
 
     def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+        return self._clock.now().nanoseconds * 1e-9
 
     def _reject(self, reason: str, what: str) -> None:
         self.rejected[reason] += 1
@@ -211,7 +224,7 @@ class DobAltitudeNode(Node):
         if not self._stamp_ok(state.t_s, last, 'apron/state'):
             return
         self._apron = state
-        self._apron_new = True
+        self._step()   # event-driven: the command goes out in this callback
 
     def _on_reference(self, msg: MultiDOFJointTrajectory) -> None:
         pts = msg.points
@@ -283,20 +296,26 @@ class DobAltitudeNode(Node):
             return 'invalid_vertical'
         return ''
 
-    def _on_timer(self) -> None:
+    def _withhold(self, reason: str) -> None:
+        self.withheld[reason] += 1
+        if reason != self._withheld_reason:
+            self.get_logger().warn(f'publishing no thrust: {reason}',
+                                   throttle_duration_sec=2.0)
+        self._withheld_reason = reason
+        self._reset()
+
+    def _on_watchdog(self) -> None:
+        """Staleness without any apron state arriving: count it and reset the controller."""
         reason = self._withhold_reason(self._now_s())
         if reason:
-            self.withheld[reason] += 1
-            if reason != self._withheld_reason:
-                self.get_logger().warn(f'publishing no thrust: {reason}',
-                                       throttle_duration_sec=2.0)
-            self._withheld_reason = reason
-            self._reset()
+            self._withhold(reason)
+
+    def _step(self) -> None:
+        """One controller step on the apron state just accepted; publish its command."""
+        reason = self._withhold_reason(self._now_s())
+        if reason:
+            self._withhold(reason)
             return
-        if not self._apron_new:
-            self.counts['no_new_state'] += 1
-            return
-        self._apron_new = False
         st, ref, att = self._apron, self._ref, self._att
         dt = st.t_s - self._last_t_s
         if ref.frame != self._frame_used and not self._need_reset:
@@ -319,16 +338,15 @@ class DobAltitudeNode(Node):
         self._frame_used = ref.frame
         self.last_output = out
 
-        thrust = WrenchStamped()
+        thrust = self._msg_thrust
         s_to_stamp(st.t_s, thrust.header.stamp)
-        thrust.header.frame_id = self._frame_id
         thrust.wrench.force.z = out.thrust_n
-        obs = Vector3Stamped()
-        obs.header = thrust.header
+        self.pub_thrust.publish(thrust)
+        obs = self._msg_observer
+        s_to_stamp(st.t_s, obs.header.stamp)
         obs.vector.x = out.sigma
         obs.vector.y = out.d_hat_mps2
         obs.vector.z = out.e_z_m
-        self.pub_thrust.publish(thrust)
         self.pub_observer.publish(obs)
 
     # --- diagnostics -----------------------------------------------------------------------
