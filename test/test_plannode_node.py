@@ -461,3 +461,34 @@ def test_every_core_field_is_a_parameter():
     assert {v[0] for v in HORIZONTAL_FIELDS.values()} == {f.name for f in
                                                            fields(HorizontalParams)}
     assert all(s.description for s in PARAMS)
+
+
+def test_every_apron_state_is_answered_in_its_callback(ros):
+    """Event-driven: a burst of five apron states 2 ms apart (faster than any 100 Hz timer)
+    gives five attitude commands and references, stamped with exactly those five t_s; a
+    timer-clocked loop would use the latest state only, once per period. While the states
+    are fresh the watchdog never steps (no fallback)."""
+    context, executor = ros
+    helper = Helper(context, executor)
+    node = make_node(context, executor, helper, landing_area_x_m=2.0)
+    helper.start()
+    assert wait_for(lambda: len(helper.get('attitude')) > 10)
+    helper.publish_apron = False
+    time.sleep(0.05)       # the helper's last apron state is handled; vehicle stays fresh
+    fallback0 = node.counts['apron_fallback']
+    m, sent = helper._msgs, []
+    for _ in range(5):
+        t = helper.now_s()
+        data = replace(helper.apron, t_s=t).to_array()
+        msg = m['Float64MultiArray'](data=data)
+        msg.layout.dim = [m['Dim'](label=helper.label, size=len(data), stride=len(data))]
+        helper.pub_apron.publish(msg)
+        sent.append(t)
+        time.sleep(0.002)
+
+    def answered(key):
+        stamps = [stamp_s(x.header) for x in helper.get(key)]
+        return [t for t in sent if min(abs(s - t) for s in stamps) < 1e-6]
+    assert wait_for(lambda: len(answered('attitude')) == 5, 2.0), (answered('attitude'), sent)
+    assert len(answered('reference')) == 5
+    assert node.counts['apron_fallback'] == fallback0

@@ -1,6 +1,7 @@
-"""ROS 2 adapter of the landing planner and the horizontal position loop (100 Hz).
+"""ROS 2 adapter of the landing planner and the horizontal position loop.
 
-Thin: parameters, topics, services, a timer and message conversions. The algorithm is the pure
+Thin: parameters, topics, services, a watchdog timer and message conversions. The algorithm is
+the pure
 core — :class:`~landing_planner.planner.LandingPlanner` (paper section 3.3, Steps 1-16) and
 :class:`~landing_planner.horizontal.HorizontalController` (inverse of the translational rows of
 model (2)) — wired exactly as :func:`deckland.runner.run_landing` wires them: every tick
@@ -8,16 +9,20 @@ model (2)) — wired exactly as :func:`deckland.runner.run_landing` wires them: 
 feed-forward with the *measured* position, velocity and yaw; the command is (roll, pitch) from
 the horizontal loop and yaw from the planner.
 
-Loop (every ``1/rate_hz`` s of the node clock, ``now``):
+Event-driven tick: the node steps *in the ``apron/state`` callback*, once per new accepted
+apron state (the estimator publishes one per autopilot IMU message, ~100 Hz, and one per
+processed camera frame), and publishes ``control/attitude`` and ``planner/reference`` right
+there. A watchdog timer (every ``1/rate_hz`` s) steps only while ``apron/state`` is stale, so
+the mission logic keeps running on the core's fallback. Per tick (node clock ``now``):
 
 1. Nothing is stepped before the first vehicle state (odom + velocity) arrives.
 2. Planner time is the node clock: ``t_s = now``, ``dt_s`` = time since the last step (the
-   nominal period after a pause longer than ``input_timeout_s``; a tick whose clock did not
-   advance is skipped).
-3. ``apron/state`` older than ``input_timeout_s`` (or never received) is replaced by the
-   core's safe fallback ``ApronState.untracked(now)`` (not tracked, vertical state invalid):
-   the planner then pauses and, after its ``invalid_timeout_s``, goes to HOLD (FALLBACK when
-   low in DESCEND/FINAL).
+   nominal period ``1/rate_hz`` after a pause longer than ``input_timeout_s``; a tick whose
+   clock did not advance is skipped).
+3. ``apron/state`` older than ``input_timeout_s`` (or never received): the watchdog steps
+   with the core's safe fallback ``ApronState.untracked(now)`` (not tracked, vertical state
+   invalid): the planner then pauses and, after its ``invalid_timeout_s``, goes to HOLD
+   (FALLBACK when low in DESCEND/FINAL).
 4. A stale vehicle state is fed as a non-finite ``VehicleState`` (the core's only
    "vehicle invalid" path; it counts it in ``planner.rejected['nan']``), so the planner's safe
    mode runs; ``control/attitude``, ``planner/reference`` and ``planner/setpoint`` are then
@@ -175,7 +180,9 @@ def _horizontal_specs() -> list[ParamSpec]:
 PARAMS: list[ParamSpec] = [
     *_planner_specs(),
     *_horizontal_specs(),
-    ParamSpec('rate_hz', 100.0, 'planner and horizontal loop rate (Hz)',
+    ParamSpec('rate_hz', 100.0,
+              'nominal loop rate (Hz): the loop steps per apron/state; at this rate the '
+              'watchdog steps while apron/state is stale, 1/rate_hz is the dt after a pause',
               lambda v: 1.0 <= v <= 1000.0, 'must be in [1, 1000]'),
     positive('input_timeout_s', 0.3,
              'apron/state or vehicle state older than this (s) = stale'),
@@ -222,6 +229,7 @@ class LandingPlannerNode(Node):
         self._period_s = 1.0 / p['rate_hz']
         self._timeout_s = p['input_timeout_s']
         self._map = p['map_frame']
+        self._clock = self.get_clock()
 
         self._apron: ApronState | None = None
         # vehicle: odom (stamp, position, roll, pitch, yaw) and velocity (stamp, v)
@@ -264,18 +272,37 @@ class LandingPlannerNode(Node):
         self.create_service(Trigger, 'planner/start_landing', self._srv_start)
         self.create_service(Trigger, 'planner/abort', self._srv_abort)
         self.create_service(Trigger, 'planner/takeoff', self._srv_takeoff)
-        self.create_timer(self._period_s, self._on_timer)
+        self._build_messages()
+        self.create_timer(self._period_s, self._on_watchdog)
         self.create_timer(1.0, self._publish_diagnostics)
         self._publish_mode()
         self.get_logger().info(
-            f"landing planner at {p['rate_hz']:g} Hz, landing area "
+            f"landing planner stepped per apron/state (watchdog {p['rate_hz']:g} Hz), "
+            'landing area '
             f"({p['landing_area_x_m']:.2f}, {p['landing_area_y_m']:.2f}) m, profile "
             f"{p['descent_profile']!r}")
 
     # --- helpers ---------------------------------------------------------------------------
 
     def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+        return self._clock.now().nanoseconds * 1e-9
+
+    def _build_messages(self) -> None:
+        """Command messages built once and refilled per tick (publish serialises them)."""
+        att = QuaternionStamped()
+        att.header.frame_id = self._map
+        self._msg_att = att
+        self._tf, self._vel_ff, self._acc = Transform(), Twist(), Twist()
+        ref = MultiDOFJointTrajectory()
+        ref.header.frame_id = self._map
+        ref.joint_names = ['']
+        ref.points = [MultiDOFJointTrajectoryPoint(transforms=[self._tf],
+                                                   velocities=[self._vel_ff],
+                                                   accelerations=[self._acc])]
+        self._msg_ref = ref
+        pose = PoseStamped()
+        pose.header.frame_id = self._map
+        self._msg_pose = pose
 
     def _reject(self, reason: str, what: str) -> None:
         self.rejected[reason] += 1
@@ -326,6 +353,7 @@ class LandingPlannerNode(Node):
         if not self._stamp_ok(st.t_s, self._apron.t_s if self._apron else None, 'apron/state'):
             return
         self._apron = st
+        self._step(self._now_s(), st)   # event-driven: the commands go out in this callback
 
     def _on_odom(self, msg: Odometry) -> None:
         if msg.header.frame_id != self._map:
@@ -402,8 +430,18 @@ class LandingPlannerNode(Node):
                                    throttle_duration_sec=2.0)
         self._withheld_reason = reason
 
-    def _on_timer(self) -> None:
+    def _on_watchdog(self) -> None:
+        """Step on the core's fallback while apron/state is stale (or never received)."""
         now = self._now_s()
+        apron = self._apron
+        if apron is not None and now - apron.t_s <= self._timeout_s:
+            return                          # the chain is alive: apron/state drives the steps
+        if self._odom is not None and self._vel is not None:
+            self.counts['apron_fallback'] += 1
+        self._step(now, ApronState.untracked(now))   # the core's safe fallback (module doc)
+
+    def _step(self, now: float, apron: ApronState) -> None:
+        """One planner + horizontal-loop tick on ``apron``; publish the commands."""
         if self._odom is None or self._vel is None:
             self._withhold('no_vehicle')   # nothing known yet: the planner is not stepped
             return
@@ -415,10 +453,6 @@ class LandingPlannerNode(Node):
             dt = self._period_s            # after a pause: restart at the nominal period
         self._t_step = now
 
-        apron = self._apron
-        if apron is None or now - apron.t_s > self._timeout_s:
-            apron = ApronState.untracked(now)   # the core's safe fallback (see module doc)
-            self.counts['apron_fallback'] += 1
         vehicle = self._vehicle(now)
         fed = vehicle if vehicle is not None else VehicleState(
             t_s=now, position_m=_NAN3, velocity_mps=_NAN3, roll_rad=math.nan,
@@ -449,9 +483,8 @@ class LandingPlannerNode(Node):
             return
         self._withheld_reason = ''
         self.last_command = (roll, pitch)
-        att = QuaternionStamped()
+        att = self._msg_att
         s_to_stamp(stamp_s, att.header.stamp)
-        att.header.frame_id = self._map
         q = att.quaternion
         q.w, q.x, q.y, q.z = euler_to_quaternion(roll, pitch, out.yaw_rad)
         self.pub_attitude.publish(att)
@@ -463,19 +496,16 @@ class LandingPlannerNode(Node):
         sx, sy = out.setpoint_m
         fx, fy = out.velocity_ff_mps
         qw, qx, qy, qz = euler_to_quaternion(0.0, 0.0, out.yaw_rad)
-        tf = Transform()
+        tf = self._tf
         tf.translation.x, tf.translation.y, tf.translation.z = sx, sy, out.z_d_m
         tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z = qw, qx, qy, qz
-        vel = Twist()
-        vel.linear.x, vel.linear.y, vel.linear.z = fx, fy, out.z_d_dot_mps
-        acc = Twist()
-        acc.linear.z = out.z_d_ddot_mps2
-        ref = MultiDOFJointTrajectory()
+        vel = self._vel_ff.linear
+        vel.x, vel.y, vel.z = fx, fy, out.z_d_dot_mps
+        self._acc.linear.z = out.z_d_ddot_mps2
+        ref = self._msg_ref
         s_to_stamp(stamp_s, ref.header.stamp)
-        ref.header.frame_id = self._map
-        ref.joint_names = [out.vertical_mode]
-        ref.points = [MultiDOFJointTrajectoryPoint(transforms=[tf], velocities=[vel],
-                                                   accelerations=[acc])]
+        if ref.joint_names[0] != out.vertical_mode:
+            ref.joint_names = [out.vertical_mode]
         self.pub_reference.publish(ref)
         self.counts['reference'] += 1
 
@@ -484,8 +514,8 @@ class LandingPlannerNode(Node):
         z = out.z_d_m
         if out.vertical_mode == VERTICAL_RELATIVE and apron.vertical.valid:
             z += apron.vertical.surface_height_m
-        pose = PoseStamped()
-        pose.header = ref.header
+        pose = self._msg_pose
+        s_to_stamp(stamp_s, pose.header.stamp)
         pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = sx, sy, z
         o = pose.pose.orientation
         o.w, o.x, o.y, o.z = qw, qx, qy, qz
