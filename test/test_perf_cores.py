@@ -125,3 +125,21 @@ def test_measure_realtime_factor_reports_one_run():
     assert r['us_per_physics_step'] > 0.0
     with pytest.raises(ValueError, match='runs'):
         measure_realtime_factor(runs=0)
+
+
+def test_displacement_equals_difference_of_integrals():
+    """Δv = V(t1) − V(t0), Δp = X(t1) − X(t0) − V(t0)(t1 − t0), exactly, wherever t0/t1 fall."""
+    rng = random.Random(11)
+    acc = AccelIntegrator()
+    t = 0.0
+    for _ in range(200):
+        t += rng.uniform(0.001, 0.02)
+        acc.add(t, rng.gauss(0.0, 1.0), rng.gauss(0.0, 1.0))
+    for _ in range(300):
+        t0 = rng.uniform(-0.1, t + 0.1)
+        t1 = t0 + rng.uniform(0.0, 0.5)
+        v0x, x0x, v0y, x0y = acc.integrals(t0)
+        v1x, x1x, v1y, x1y = acc.integrals(t1)
+        want = ((x1x - x0x - v0x * (t1 - t0), v1x - v0x, x1y - x0y - v0y * (t1 - t0), v1y - v0y)
+                if t1 > acc._t[0] else (0.0, 0.0, 0.0, 0.0))
+        assert acc.displacement(t0, t1) == want

@@ -192,9 +192,22 @@ class AccelIntegrator:
         ts = self._t
         if not ts or t1 <= ts[0]:
             return 0.0, 0.0, 0.0, 0.0
-        integrals = self.integrals
-        v0x, x0x, v0y, x0y = integrals(t0)
-        v1x, x1x, v1y, x1y = integrals(t1)
+        # integrals(t0) and integrals(t1) written out (this runs ~4 times per 10 ms tick)
+        ax, ay, vx, vy, xx, xy = self._ax, self._ay, self._vx, self._vy, self._xx, self._xy
+        last = len(ts) - 1
+        k = last if t0 >= ts[last] else bisect_right(ts, t0) - 1
+        if k < 0:
+            v0x = x0x = v0y = x0y = 0.0
+        else:
+            h = t0 - ts[k]
+            a, b, v, w = ax[k], ay[k], vx[k], vy[k]
+            v0x, x0x = v + a * h, xx[k] + h * (v + 0.5 * a * h)
+            v0y, x0y = w + b * h, xy[k] + h * (w + 0.5 * b * h)
+        k = last if t1 >= ts[last] else bisect_right(ts, t1) - 1
+        h = t1 - ts[k]   # k >= 0: t1 > ts[0]
+        a, b, v, w = ax[k], ay[k], vx[k], vy[k]
+        v1x, x1x = v + a * h, xx[k] + h * (v + 0.5 * a * h)
+        v1y, x1y = w + b * h, xy[k] + h * (w + 0.5 * b * h)
         dt = t1 - t0
         return x1x - x0x - v0x * dt, v1x - v0x, x1y - x0y - v0y * dt, v1y - v0y
 
