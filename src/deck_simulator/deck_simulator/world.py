@@ -197,8 +197,9 @@ class World:
     def set_command(self, roll_rad: float, pitch_rad: float, yaw_rad: float,
                     thrust_n: float) -> None:
         """Attitude setpoint (FLU in ENU, Z-Y-X) and collective thrust u_z in newtons."""
-        if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad) and math.isfinite(yaw_rad)
-                and math.isfinite(thrust_n)):
+        # one isfinite on the sum: NaN/inf anywhere makes it non-finite (finite commands would
+        # need magnitudes near 1e308 to overflow it)
+        if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust_n):
             self.rejected['nan'] += 1
             return
         v = self.vehicle

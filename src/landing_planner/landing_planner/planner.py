@@ -316,10 +316,9 @@ class LandingPlanner:
     # --- input handling ------------------------------------------------------------------
     def _read_vehicle(self, vehicle: VehicleState) -> bool:
         try:
-            pos = (float(vehicle.position_m[0]), float(vehicle.position_m[1]),
-                   float(vehicle.position_m[2]))
-            vel = (float(vehicle.velocity_mps[0]), float(vehicle.velocity_mps[1]),
-                   float(vehicle.velocity_mps[2]))
+            vp, vv = vehicle.position_m, vehicle.velocity_mps
+            pos = (float(vp[0]), float(vp[1]), float(vp[2]))
+            vel = (float(vv[0]), float(vv[1]), float(vv[2]))
             ok = _finite(*pos, *vel, vehicle.yaw_rad, vehicle.roll_rad, vehicle.pitch_rad)
         except (TypeError, ValueError, IndexError, AttributeError):
             ok = False
