@@ -308,15 +308,19 @@ def test_every_apron_state_is_answered_in_its_callback(ros_context):
     would step on the latest state only, once per period. The reference used is the latest
     received (here the helper's, unchanged), so each command still follows (16)."""
     context, executor = ros_context
-    node = make_node(context, executor)
+    # a long input timeout: a loaded machine may stall the helper; nothing may go stale here
+    node = make_node(context, executor, input_timeout_s=2.0)
     helper = Helper(context, executor, height_m=1.8, z_d_m=2.0)
     helper.start(node)
     assert wait_for(lambda: len(helper.pairs()) >= 10)
     helper.publish_apron = False
-    time.sleep(0.05)    # the helper's last apron state is handled; the rest stays fresh
+    n_sent = -1
+    while n_sent != len(helper.apron_sent):   # the helper's last apron state is out
+        n_sent = len(helper.apron_sent)
+        time.sleep(0.05)
     sent = []
     for _ in range(5):
-        t = helper.now_s()
+        t = max(helper.now_s(), helper.apron_sent[-1][0] + 1e-3)
         data = replace(helper.base_state, t_s=t, vertical=helper.vertical).to_array()
         msg = helper._Float64MultiArray(data=data)
         msg.layout.dim = [helper._Dim(label=helper.label, size=len(data), stride=len(data))]
