@@ -544,3 +544,15 @@ def test_a_camera_frame_is_published_at_once_not_at_the_next_imu_tick(make):
     assert wait_for(lambda: len(carried()) == 5, 3.0), (carried(), stamps, node.triggers,
                                                          node.estimator.rejected)
     assert node.triggers['camera'] - cam0 == 5
+
+
+def test_main_exits_2_on_an_unknown_executor(monkeypatch, capsys):
+    """run_node's executor comes from $DECKLAND_EXECUTOR ('events' default, 'single'
+    fallback); anything else is a configuration error (status 2), never a silent default."""
+    from apron_estimator.node import main
+    from deckland_common.ros_node import executor_kind
+    assert executor_kind({}) == 'events'
+    assert executor_kind({'DECKLAND_EXECUTOR': ' Single '}) == 'single'
+    monkeypatch.setenv('DECKLAND_EXECUTOR', 'multi')
+    assert main([]) == 2
+    assert 'DECKLAND_EXECUTOR' in capsys.readouterr().err
