@@ -221,7 +221,8 @@ def test_start_landing_tilts_toward_the_area_by_the_pid_law(ros):
     assert res.success, res.message
     assert wait_for(lambda: helper.modes()[-1:] == ['APPROACH'])
     helper.clear('attitude', 'reference')
-    # one command per apron state the helper gets out (event-driven): wait for the count
+    time.sleep(1.5)
+    # one command per apron state the helper gets out (event-driven): a slow helper needs longer
     assert wait_for(lambda: len(helper.get('attitude')) > 50, 6.0)
     att, ref = helper.get('attitude'), helper.get('reference')
     assert len(att) > 50 and len(ref) >= len(att)
@@ -263,6 +264,7 @@ def test_yawed_vehicle_rolls_right_toward_an_area_on_its_right(ros):
     helper.start()
     assert helper.call('start_landing').success
     helper.clear('attitude')
+    time.sleep(1.0)
     assert wait_for(lambda: len(helper.get('attitude')) > 30, 5.0)  # one per apron state
     att = helper.get('attitude')
     assert len(att) > 30
