@@ -836,16 +836,62 @@ def test_dob_altitude_survives_fuzzed_inputs(ros_context):
             assert node.rejected[key] > 0, (key, node.rejected)
         assert rig.out['control/thrust'], 'no thrust while fed valid frames'
 
-        # valid input afterwards: hovering 0.2 m below the reference at rest, law (16) asks
-        # for more than the hover thrust m g, within the limits; the observer is finite
+        # Valid input afterwards: hovering 0.2 m below the reference at rest (e_z = -0.2,
+        # e_dot = 0, level, free air). The DOB keeps memory: the fuzz's finite-but-absurd
+        # inputs (e.g. closing speed or z_d_dot = +-1e308, which the contract accepts) drive
+        # d_hat of (18) to its +-2 g clamp, and it relaxes only at ~Gamma K |sigma| ~ 3 m/s^2
+        # per second. So "thrust > m g" right after the fuzz depends on how long the fuzz took
+        # (this was the flaky failure). What must hold at once is law (16) with the published
+        # sigma and d_hat, d_hat within its bound, and the limits.
+        from dob_altitude.ground_effect import ground_effect_gain
+        cp = node.controller.params
+        mg = cp.mass_kg * cp.gravity_mps2
+        gbar = ground_effect_gain(cp.rho_bar, cp.prop_radius_m, 1.8 + 0.05,
+                                  cp.ge_min_rotor_height_m, cp.ge_max_gain)
+
+        def law_16(sigma, d_hat):
+            u = cp.mass_kg / gbar * (-cp.k * sigma + cp.gravity_mps2 - d_hat)   # zeta = 0
+            return min(max(u, cp.thrust_min_n), cp.thrust_max_n)
+
+        def commands():
+            obs = {(o.header.stamp.sec, o.header.stamp.nanosec): o.vector
+                   for o in rig.out['altitude/observer']}
+            return [(m.wrench.force.z, obs.get((m.header.stamp.sec, m.header.stamp.nanosec)))
+                    for m in rig.out['control/thrust']]
+
         rig.clear()
         assert rig.spin_until(lambda: (valid_frame(), rig.spin(0.01),
                                        len(rig.out['control/thrust']) > 10)[-1], 5.0)
-        mg = node.cfg['mass_kg'] * G
-        for msg in rig.out['control/thrust'][-5:]:
-            assert mg < msg.wrench.force.z <= node.cfg['thrust_max_n']
-        assert rig.out['altitude/observer'][-1].vector.z == pytest.approx(-0.2, abs=1e-6) or \
-            rig.out['altitude/observer'][-1].vector.z == pytest.approx(0.2, abs=1e-6)
+        sigma_expected = -cp.lam * 0.2 / math.sqrt(0.04 + 1.0)                    # (14)
+        checked = 0
+        for thrust, ob in commands()[-5:]:
+            if ob is None:
+                continue
+            assert ob.z == pytest.approx(-0.2, abs=1e-6)                          # (7)
+            assert ob.x == pytest.approx(sigma_expected, rel=1e-9)
+            assert abs(ob.y) <= cp.d_hat_limit_mps2 + 1e-9
+            assert thrust == pytest.approx(law_16(ob.x, ob.y), rel=1e-9)
+            checked += 1
+        assert checked >= 3
+
+        # A fresh controller (control/enabled False -> True resets it) starts with d_hat = 0:
+        # 0.2 m below the reference at rest, (16) asks for more than m g; the vehicle does not
+        # respond (nothing moves in this rig), so d_hat only falls and the thrust only rises
+        # (to at most thrust_max_n).
+        rig.send('control/enabled', Bool(data=False))
+        rig.spin(0.02)
+        rig.send('control/enabled', Bool(data=True))
+        rig.clear()
+        assert rig.spin_until(lambda: (valid_frame(), rig.spin(0.01),
+                                       len(rig.out['control/thrust']) > 10)[-1], 5.0)
+        cmds = commands()
+        assert cmds[0][1] is not None and cmds[0][1].y == 0.0          # start-up: d_hat = 0
+        assert cmds[0][0] == pytest.approx(law_16(sigma_expected, 0.0), rel=1e-9)
+        thrusts = [t for t, _ in cmds]
+        for a, b in itertools.pairwise(thrusts):
+            assert b >= a - 1e-9
+        for t in thrusts:
+            assert mg < t <= cp.thrust_max_n
         rig.check_clean()
     finally:
         rig.close()
