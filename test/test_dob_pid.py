@@ -58,7 +58,10 @@ def test_matched_gains_and_validation():
     assert pid.kd == pytest.approx(k + lam + gam)
     assert pid.kp == pytest.approx(k * lam + k * gam + lam * gam)
     assert pid.ki == pytest.approx(k * lam * gam)
-    assert PidParams.profile('default') == pid == PidParams()
+    assert PidParams.profile('paper') == pid == PidParams()
+    tuned = PidParams.profile('default')    # the equal-effort sweep's winner (pid.py)
+    assert (tuned.kp, tuned.ki, tuned.kd) == (16.2069, 8.5435, 20.672)
+    assert tuned.mass_kg == pid.mass_kg and tuned.thrust_max_n == pid.thrust_max_n
     with pytest.raises(ValueError, match='unknown profile'):
         PidParams.profile('x')
     for field, value in [('kp', -1.0), ('ki', math.nan), ('thrust_max_n', 10.0),
