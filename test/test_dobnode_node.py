@@ -255,7 +255,8 @@ def test_pid_is_selectable_with_gain_overrides(ros_context):
         expected = M / gamma(1.85) * (G + 10.0 * 0.2 - obs.vector.y)
         assert wrench.wrench.force.z == pytest.approx(expected, rel=1e-9)
         assert obs.vector.y <= 0.0
-    assert ki == pytest.approx(0.85 * 10.47 * 1.6)  # profile value kept (matched to the DOB)
+    from dob_altitude.pid import PidParams
+    assert ki == PidParams.profile('default').ki    # profile value kept where not overridden
 
 
 def test_disabled_publishes_nothing_and_world_frame_reference(ros_context):
