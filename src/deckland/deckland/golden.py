@@ -1,0 +1,1229 @@
+"""Golden-bag regression: record a reference ``paper`` landing, replay it, compare.
+
+``python -m deckland.golden record DIR`` (``make golden``) flies one ``paper`` landing with the
+real node graph and writes a small rosbag2 MCAP bag into ``DIR`` holding only what a replay
+needs, plus ``DIR/golden.yaml`` (scenario, seed, window, the nodes' effective parameters).
+Regenerating it is deliberate: nothing in the tests ever writes it.
+
+Two replays (tests: ``test/test_golden_cores.py`` and ``test/test_golden_nodes.py``):
+
+* :func:`replay_cores` (pure, no rclpy): the recorded inputs are fed in the bag's order into
+  :class:`~apron_estimator.estimator.ApronEstimator` (through :mod:`apron_estimator.inputs`,
+  exactly as the estimator node does), and the planner and the altitude controller are stepped
+  on each recorded ``apron/state`` exactly as their nodes do. Outputs are matched to the
+  recorded ones by stamp and compared with :data:`CORE_TOLERANCES`.
+* :func:`replay_nodes` (ROS): the estimator, planner and altitude nodes run in-process, the
+  bag's input topics are played with :func:`deckland.bag.play` (rate 1.0) and their outputs
+  are compared with the looser :data:`NODE_TOLERANCES`.
+
+Why the bag starts at the first input (not at the landing trigger): every core has memory (the
+filters, the planner's reference generator and horizontal integrator, the observer μ of (19));
+replaying from mid-flight would start them from another state. The nodes do nothing before
+their first input, so the replay of the whole window starts from the same state as the nodes.
+See ``src/deckland/README-golden.md`` for the tolerances and why they are what they are.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+import math
+import os
+from pathlib import Path
+import random
+import shutil
+import sys
+import tempfile
+import time
+from typing import Any
+
+import yaml
+
+#: Inputs of the three nodes (the replay feeds these) and the landing trigger's witness.
+INPUT_TOPICS = ('/pixy/blocks', '/vehicle/imu', '/vehicle/odom', '/vehicle/velocity',
+                '/vehicle/range', '/vehicle/landed', '/planner/mode')
+#: Recorded outputs the replays compare against.
+OUTPUT_TOPICS = ('/apron/state', '/planner/reference', '/control/attitude', '/control/thrust',
+                 '/altitude/observer', '/control/enabled')
+#: Topics played into the nodes by :func:`replay_nodes` (``planner/mode`` is the planner's
+#: own output: the trigger is a service call instead).
+PLAY_TOPICS = ('/pixy/blocks', '/vehicle/imu', '/vehicle/odom', '/vehicle/velocity',
+               '/vehicle/range', '/vehicle/landed')
+META_NAME = 'golden.yaml'
+META_VERSION = 1
+DEFAULT_SCENARIO = 'paper'
+DEFAULT_SEED = 7
+MAX_BAG_BYTES = 2 * 1024 * 1024
+
+#: Node-level parameters the replay mirrors (defaults of the nodes' PARAMS; the test
+#: ``test_golden_cores.py::test_node_defaults_mirrored`` checks them against the nodes).
+NODE_DEFAULTS: dict[str, dict[str, Any]] = {
+    'apron_estimator': {'rate_hz': 100.0, 'input_timeout_s': 0.5, 'gravity_mps2': 9.81,
+                        'position_pair_tolerance_s': 0.005},
+    'landing_planner': {'rate_hz': 100.0, 'input_timeout_s': 0.3, 'map_frame': 'map',
+                        'landing_area_x_m': 0.0, 'landing_area_y_m': 0.0},
+    'dob_altitude': {'controller': 'dob', 'gains_profile': 'default', 'mass_kg': 2.71,
+                     'thrust_min_n': 2.66, 'thrust_max_n': 53.17,
+                     'rotor_height_offset_m': 0.05, 'surface_accel_feedforward': False,
+                     'rate_hz': 100.0, 'input_timeout_s': 0.2},
+}
+
+
+# ======================================================================== tolerances
+
+
+@dataclass(frozen=True, slots=True)
+class Tolerances:
+    """Allowed differences replay − recorded (README-golden.md explains every number).
+
+    ``*_p99`` bound the 99th percentile of the absolute error over all matched samples,
+    ``*_max`` the worst sample (a rare ordering race may move one sample further);
+    ``min_matched`` is the fraction of recorded samples that must find a replayed one.
+    """
+
+    apron_pos_m: tuple[float, float]        # rel/apron positions (p99, max)
+    apron_vel_mps: tuple[float, float]      # rel/apron velocities
+    height_m: tuple[float, float]           # vertical heights / altitudes
+    vspeed_mps: tuple[float, float]         # vertical speeds
+    ref_z_m: tuple[float, float]            # z_d
+    ref_z_dot_mps: tuple[float, float]      # ż_d, and the feed-forward velocities
+    ref_xy_m: tuple[float, float]           # horizontal setpoint
+    attitude_rad: tuple[float, float]       # roll/pitch/yaw command
+    thrust_n: tuple[float, float]           # u_z
+    observer: tuple[float, float]           # σ and d̂ (e_z uses ref_z_m)
+    min_matched: float
+    stamp_s: float = 0.0                    # match window of stamps (node replay only)
+
+
+#: Pure replay: the same code on the same inputs. What is left comes from timing the bag does
+#: not record exactly: which lidar/odometry sample the estimator had when it published (the
+#: alignment picks the IMU/camera trigger, not the samples in between), the planner's clock
+#: (its ``now`` is approximated by the recorder's receive time: the reference generator and
+#: the horizontal PID see dt jitter of a few ms, and a mode change may move by one tick).
+#: Measured on the shipped bag: README-golden.md, "Tolerances".
+CORE_TOLERANCES = Tolerances(
+    apron_pos_m=(2e-3, 0.15), apron_vel_mps=(1e-2, 0.4), height_m=(1e-3, 0.05),
+    vspeed_mps=(2e-2, 0.2), ref_z_m=(3e-3, 1e-2), ref_z_dot_mps=(5e-3, 2e-2),
+    ref_xy_m=(1e-2, 3e-2), attitude_rad=(1e-2, 0.12), thrust_n=(5e-2, 0.3),
+    observer=(1e-2, 5e-2), min_matched=0.99)
+
+#: Node replay through DDS at rate 1.0: every output is stamped with the node's wall clock,
+#: so samples pair only to the nearest stamp (± 10 ms) and each node handles its inputs in
+#: whatever order and bunching the executor delivers them; the planner's mode changes may
+#: move by a few ticks. The bounds catch a wrong sign, a lost stage or a grossly changed
+#: gain, not a subtle one (that is the pure replay's job).
+NODE_TOLERANCES = Tolerances(
+    apron_pos_m=(5e-2, 0.5), apron_vel_mps=(0.2, 1.0), height_m=(5e-2, 0.3),
+    vspeed_mps=(0.3, 1.0), ref_z_m=(5e-2, 0.3), ref_z_dot_mps=(0.1, 0.5),
+    ref_xy_m=(0.1, 0.4), attitude_rad=(5e-2, 0.2), thrust_n=(3.0, 15.0),
+    observer=(2.0, 10.0), min_matched=0.8, stamp_s=0.01)
+
+
+# ================================================================= reading (pure, rosbags)
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    """One bag message decoded to plain numbers: ``kind`` and a tuple of fields."""
+
+    t_ns: int          # bag (receive) time
+    kind: str
+    data: tuple
+
+
+def _stamp(h: Any) -> float:
+    return h.stamp.sec + h.stamp.nanosec * 1e-9
+
+
+def _decode(topic: str, m: Any) -> tuple[str, tuple] | None:
+    """rosbags message → (kind, fields); the field order is what the replays read."""
+    if topic == '/vehicle/imu':
+        o, a = m.orientation, m.linear_acceleration
+        return 'imu', (_stamp(m.header), (o.w, o.x, o.y, o.z),
+                       float(m.orientation_covariance[0]), (a.x, a.y, a.z))
+    if topic == '/vehicle/odom':
+        p, q = m.pose.pose.position, m.pose.pose.orientation
+        return 'odom', (_stamp(m.header), m.header.frame_id, (p.x, p.y, p.z),
+                        (q.w, q.x, q.y, q.z))
+    if topic == '/vehicle/velocity':
+        v = m.twist.linear
+        return 'velocity', (_stamp(m.header), m.header.frame_id, (v.x, v.y, v.z))
+    if topic == '/vehicle/range':
+        return 'range', (_stamp(m.header), float(m.range), float(m.min_range),
+                         float(m.max_range))
+    if topic == '/pixy/blocks':
+        return 'blocks', (_stamp(m.header), [p.x for p in m.points], [p.y for p in m.points],
+                          {c.name: [float(v) for v in c.values] for c in m.channels})
+    if topic == '/vehicle/landed':
+        return 'landed', (bool(m.data),)
+    if topic == '/planner/mode':
+        return 'mode', (str(m.data),)
+    if topic == '/control/enabled':
+        return 'enabled', (bool(m.data),)
+    if topic == '/apron/state':
+        label = m.layout.dim[0].label if len(m.layout.dim) else ''
+        return 'apron', (tuple(float(x) for x in m.data), label)
+    if topic == '/planner/reference':
+        pt = m.points[0]
+        tr, r = pt.transforms[0].translation, pt.transforms[0].rotation
+        v, a = pt.velocities[0].linear, pt.accelerations[0].linear
+        name = m.joint_names[0] if len(m.joint_names) else ''
+        return 'reference', (_stamp(m.header), name, (tr.x, tr.y, tr.z), (v.x, v.y, v.z),
+                             a.z, _yaw_of(r.w, r.x, r.y, r.z))
+    if topic == '/control/attitude':
+        q = m.quaternion
+        return 'attitude', (_stamp(m.header), (q.w, q.x, q.y, q.z))
+    if topic == '/control/thrust':
+        return 'thrust', (_stamp(m.header), float(m.wrench.force.z))
+    if topic == '/altitude/observer':
+        v = m.vector
+        return 'observer', (_stamp(m.header), (v.x, v.y, v.z))
+    return None
+
+
+def _yaw_of(w: float, x: float, y: float, z: float) -> float:
+    from deckland_common.frames import quaternion_to_euler
+
+    return quaternion_to_euler(w, x, y, z)[2]
+
+
+@dataclass
+class Golden:
+    """A golden bag read into memory: metadata and every event in bag order."""
+
+    path: Path
+    meta: dict[str, Any]
+    events: list[Event]
+
+    def of(self, kind: str) -> list[Event]:
+        return [e for e in self.events if e.kind == kind]
+
+
+def load(bag_dir: str | os.PathLike[str]) -> Golden:
+    """Read ``DIR/golden.yaml`` and decode every message of the bag (rosbags, no rclpy)."""
+    from rosbags.highlevel import AnyReader
+
+    bag = Path(bag_dir)
+    meta_path = bag / META_NAME
+    if not meta_path.is_file():
+        raise FileNotFoundError(f'{meta_path} missing: not a golden bag (make golden)')
+    meta = yaml.safe_load(meta_path.read_text())
+    if not isinstance(meta, dict) or meta.get('version') != META_VERSION:
+        raise ValueError(f'{meta_path}: unsupported golden metadata version')
+    events = []
+    with AnyReader([bag]) as reader:
+        for conn, t_ns, raw in reader.messages():
+            decoded = _decode(conn.topic, reader.deserialize(raw, conn.msgtype))
+            if decoded is not None:
+                events.append(Event(t_ns, decoded[0], decoded[1]))
+    return Golden(bag, meta, events)
+
+
+# ===================================================================== pure core replay
+
+
+def node_params(meta: dict[str, Any], node: str) -> dict[str, Any]:
+    """The effective parameters of ``node`` in the recording: defaults + recorded overrides."""
+    values = dict(NODE_DEFAULTS[node])
+    values.update((meta.get('parameters') or {}).get(node) or {})
+    return values
+
+
+def make_cores(meta: dict[str, Any]) -> tuple[Any, Any, Any, Any]:
+    """(estimator, planner, horizontal controller, altitude controller) as the nodes build them.
+
+    The estimator and the planner use their core defaults (the nodes' PARAMS are generated
+    from them) plus the recorded overrides; the altitude controller is built by
+    :func:`dob_altitude.adapter.make_controller` with the node's override rule.
+    """
+    from apron_estimator.estimator import ApronEstimator, EstimatorParams
+    from dob_altitude.adapter import make_controller
+    from landing_planner.horizontal import HorizontalController, HorizontalParams
+    from landing_planner.planner import LandingPlanner, PlannerParams
+
+    pp = node_params(meta, 'landing_planner')
+    dp = node_params(meta, 'dob_altitude')
+    planner = LandingPlanner(PlannerParams(
+        landing_area_m=(float(pp['landing_area_x_m']), float(pp['landing_area_y_m']))))
+    gains = {'dob': ('k', 'lam', 'gamma_obs'), 'pid': ('kp', 'ki', 'kd')}[dp['controller']]
+    overrides = {k: dp[k] for k in gains if k in dp and dp[k] >= 0.0}
+    overrides.update(mass_kg=dp['mass_kg'], thrust_min_n=dp['thrust_min_n'],
+                     thrust_max_n=dp['thrust_max_n'])
+    controller = make_controller(dp['controller'], dp['gains_profile'], overrides)
+    return (ApronEstimator(EstimatorParams()), planner, HorizontalController(HorizontalParams()),
+            controller)
+
+
+@dataclass
+class Replay:
+    """What a replay produced, keyed by the stamp the node would put on the message."""
+
+    apron: dict[float, tuple[float, ...]] = field(default_factory=dict)
+    reference: dict[float, tuple] = field(default_factory=dict)
+    attitude: dict[float, tuple[float, float, float]] = field(default_factory=dict)
+    thrust: dict[float, float] = field(default_factory=dict)
+    observer: dict[float, tuple[float, float, float]] = field(default_factory=dict)
+    modes: list[tuple[float, str]] = field(default_factory=list)
+    rejected: dict[str, int] = field(default_factory=dict)
+    notes: dict[str, int] = field(default_factory=dict)
+
+
+def _count(d: dict[str, int], key: str) -> None:
+    d[key] = d.get(key, 0) + 1
+
+
+class _EstimatorFeed:
+    """The estimator node's input handling (node.py ``_on_*``) on decoded events."""
+
+    def __init__(self, est: Any, p: dict[str, Any], rejected: dict[str, int]) -> None:
+        from apron_estimator.inputs import LocalPositionPairer
+
+        self.est = est
+        self.timeout = p['input_timeout_s']
+        self.g = p['gravity_mps2']
+        self.pairer = LocalPositionPairer(p['position_pair_tolerance_s'])
+        self.rejected = rejected
+
+    def _fresh(self, now: float, t: float) -> bool:
+        if now - t > self.timeout or t - now > self.timeout:
+            _count(self.rejected, 'estimator_stamp')
+            return False
+        return True
+
+    def feed(self, now: float, e: Event) -> None:
+        from apron_estimator.inputs import (
+            blocks_from_cloud,
+            lidar_range,
+            normalised_quaternion,
+            world_accel_from_specific_force,
+        )
+        from deckland_common.frames import quaternion_to_euler
+
+        k, d = e.kind, e.data
+        if k == 'imu':
+            t, q_raw, cov0, acc = d
+            if not self._fresh(now, t) or cov0 == -1.0:
+                return
+            q = normalised_quaternion(*q_raw)
+            if q is None:
+                _count(self.rejected, 'estimator_quaternion')
+                return
+            self.est.on_attitude(t, *quaternion_to_euler(*q))
+            a = world_accel_from_specific_force(q, acc, self.g)
+            if a is not None and max(abs(c) for c in acc) <= 16.0 * 9.80665:
+                self.est.on_accel(t, a)
+        elif k in ('odom', 'velocity'):
+            t = d[0]
+            if not self._fresh(now, t):
+                return
+            pair = (self.pairer.on_position(t, d[2]) if k == 'odom'
+                    else self.pairer.on_velocity(t, d[2]))
+            if pair is not None:
+                self.est.on_local_position(pair.t_s, pair.position_m, pair.velocity_mps)
+        elif k == 'range':
+            t, r, lo, hi = d
+            if self._fresh(now, t):
+                self.est.on_lidar(t, lidar_range(r, lo, hi))
+        elif k == 'blocks':
+            t, xs, ys, ch = d
+            if not self._fresh(now, t):
+                return
+            blocks = blocks_from_cloud(xs, ys, ch)
+            if blocks is None:
+                _count(self.rejected, 'estimator_cloud')
+                return
+            self.est.on_camera(t, blocks)
+
+
+class _PlannerFeed:
+    """The planner node's callbacks and ``_step`` (landing_planner/node.py) on events."""
+
+    def __init__(self, planner: Any, horizontal: Any, p: dict[str, Any], out: Replay) -> None:
+        self.planner, self.horizontal, self.out = planner, horizontal, out
+        self.period = 1.0 / p['rate_hz']
+        self.timeout = p['input_timeout_s']
+        self.map = p['map_frame']
+        self.apron_t: float | None = None
+        self.odom: tuple | None = None
+        self.vel: tuple | None = None
+        self.landed = False
+        self.t_step: float | None = None
+        self.last_stamp = -math.inf
+        self.enabled: bool | None = None
+        self.mode = planner.mode
+
+    def _ok(self, now: float, stamp: float, last: float | None) -> bool:
+        if not math.isfinite(stamp) or (last is not None and stamp < last):
+            _count(self.out.rejected, 'planner_order')
+            return False
+        if now - stamp > self.timeout or stamp - now > self.timeout:
+            _count(self.out.rejected, 'planner_stamp')
+            return False
+        return True
+
+    def feed(self, now: float, e: Event) -> None:
+        from deckland_common.frames import quaternion_to_euler
+
+        k, d = e.kind, e.data
+        if k == 'odom':
+            t, frame, pos, q = d
+            n = math.sqrt(sum(c * c for c in q))
+            if frame != self.map or abs(n - 1.0) > 0.05:
+                return
+            if self._ok(now, t, self.odom[0] if self.odom else None):
+                roll, pitch, yaw = quaternion_to_euler(*(c / n for c in q))
+                self.odom = (t, pos, roll, pitch, yaw)
+        elif k == 'velocity':
+            t, frame, v = d
+            if frame == self.map and self._ok(now, t, self.vel[0] if self.vel else None):
+                self.vel = (t, v)
+        elif k == 'landed':
+            self.landed = d[0]
+
+    def start_landing(self, now: float) -> None:
+        ok, _ = self.planner.start_landing(now)
+        _count(self.out.notes, 'start_landing_ok' if ok else 'start_landing_refused')
+        self._mode(now)
+
+    def on_apron(self, now: float, st: Any) -> None:
+        if not self._ok(now, st.t_s, self.apron_t):
+            return
+        self.apron_t = st.t_s
+        self.step(now, st)
+
+    def _mode(self, now: float) -> None:
+        if self.planner.mode is not self.mode:
+            self.mode = self.planner.mode
+            self.out.modes.append((now, self.mode.name))
+
+    def step(self, now: float, apron: Any) -> None:
+        from deckland_common.frames import euler_to_quaternion, quaternion_to_euler
+        from landing_planner.types import VehicleState
+
+        if self.odom is None or self.vel is None:
+            return
+        if self.t_step is not None and now <= self.t_step:
+            _count(self.out.notes, 'planner_clock_not_advancing')
+            return
+        dt = now - self.t_step if self.t_step is not None else self.period
+        if dt > self.timeout:
+            dt = self.period
+        self.t_step = now
+        stamp, pos, roll, pitch, yaw = self.odom
+        v_stamp, vel = self.vel
+        fresh = now - stamp <= self.timeout and now - v_stamp <= self.timeout
+        nan3 = (math.nan,) * 3
+        vehicle = VehicleState(
+            t_s=stamp if fresh else now, position_m=pos if fresh else nan3,
+            velocity_mps=vel if fresh else nan3, roll_rad=roll if fresh else math.nan,
+            pitch_rad=pitch if fresh else math.nan, yaw_rad=yaw if fresh else math.nan,
+            landed=self.landed)
+        o = self.planner.step(now, dt, vehicle, apron)
+        self._mode(now)
+        self.enabled = o.thrust_enabled
+        if not fresh:
+            _count(self.out.notes, 'planner_vehicle_stale')
+            return
+        r, p = self.horizontal.step(o.setpoint_m, o.velocity_ff_mps, (pos[0], pos[1]),
+                                    (vel[0], vel[1]), yaw, dt, precise=o.precise_xy)
+        s = max(apron.t_s, self.last_stamp)
+        self.last_stamp = s
+        q = euler_to_quaternion(0.0, 0.0, o.yaw_rad)
+        self.out.reference[s] = (o.vertical_mode, (o.setpoint_m[0], o.setpoint_m[1], o.z_d_m),
+                                 (o.velocity_ff_mps[0], o.velocity_ff_mps[1], o.z_d_dot_mps),
+                                 o.z_d_ddot_mps2, quaternion_to_euler(*q)[2])
+        if o.thrust_enabled:
+            self.out.attitude[s] = (r, p, o.yaw_rad)
+
+
+class _DobFeed:
+    """The altitude node's callbacks and ``_step`` (dob_altitude/node.py) on events."""
+
+    def __init__(self, controller: Any, p: dict[str, Any], out: Replay,
+                 references: Sequence[tuple] = (),
+                 observed: dict[float, tuple] | None = None) -> None:
+        self.ctrl, self.out = controller, out
+        # recorded references by stamp, and the recorded e_z per apron t_s (to identify the
+        # reference the node used: e_z = h - z_d of (7), see on_apron)
+        self.refs = sorted((d[0], d) for d in references)
+        self.ref_stamps = [r[0] for r in self.refs]
+        self.observed = observed or {}
+        self.period = 1.0 / p['rate_hz']
+        self.timeout = p['input_timeout_s']
+        self.offset = p['rotor_height_offset_m']
+        self.ff = p['surface_accel_feedforward']
+        self.apron: Any = None
+        self.ref: tuple | None = None        # z_d, ż_d, z̈_d, frame, stamp
+        self.att: tuple | None = None        # roll, pitch, stamp
+        self.enabled = True
+        self.need_reset = True
+        self.last_t = 0.0
+        self.frame_used = ''
+
+    def _ok(self, now: float, stamp: float, last: float | None) -> bool:
+        return (math.isfinite(stamp) and (last is None or stamp >= last)
+                and -self.timeout <= now - stamp <= self.timeout)
+
+    def on_reference(self, now: float, d: tuple) -> None:
+        from dob_altitude.adapter import parse_vertical_frame
+
+        stamp, name, tr, v, a_z, _ = d
+        frame = parse_vertical_frame(name)
+        if frame is not None and self._ok(now, stamp, self.ref[4] if self.ref else None):
+            self.ref = (tr[2], v[2], a_z, frame, stamp)
+
+    def on_imu(self, now: float, d: tuple) -> None:
+        from deckland_common.frames import quaternion_to_euler
+
+        t, q, cov0, _ = d
+        n = math.sqrt(sum(c * c for c in q))
+        if cov0 == -1.0 or abs(n - 1.0) > 0.05:
+            return
+        if self._ok(now, t, self.att[2] if self.att else None):
+            roll, pitch, _ = quaternion_to_euler(*(c / n for c in q))
+            self.att = (roll, pitch, t)
+
+    def on_enabled(self, enabled: bool) -> None:
+        self.enabled = enabled
+        if not enabled:
+            self._reset()
+
+    def _reset(self) -> None:
+        self.ctrl.reset()
+        self.need_reset = True
+
+    def _used_reference(self, st: Any) -> tuple:
+        """The reference the node used for ``st``: the latest it had received.
+
+        The planner steps on the same apron state, so the node usually has the previous
+        state's reference, but which one it had depends on the two nodes' timing. The recorded
+        ``e_z`` (= h − z_d, (7), surface frame) tells exactly: among the references stamped
+        within 50 ms before ``st`` the one with that z_d is taken; if none fits to 1e-9 m
+        (or e_z was not recorded), the latest one by bag order, as the node would.
+        """
+        import bisect
+
+        ref = self.ref
+        obs = self.observed.get(st.t_s)
+        if obs is None or ref is None or ref[3] != 'surface':
+            return ref
+        want = st.vertical.height_m - obs[2]
+        if abs(ref[0] - want) <= 1e-9:
+            return ref
+        lo = bisect.bisect_left(self.ref_stamps, st.t_s - 0.05)
+        hi = bisect.bisect_right(self.ref_stamps, st.t_s)
+        for stamp, d in self.refs[lo:hi]:
+            if abs(d[2][2] - want) <= 1e-9:
+                _count(self.out.notes, 'dob_reference_not_latest_in_bag')
+                return (d[2][2], d[3][2], d[4], ref[3], stamp)
+        _count(self.out.notes, 'dob_reference_unidentified')
+        return ref
+
+    def on_apron(self, now: float, st: Any) -> None:
+        from dob_altitude.adapter import altitude_input
+
+        last = self.apron.t_s if self.apron is not None else None
+        if (last is not None and st.t_s == last) or not self._ok(now, st.t_s, last):
+            return
+        self.apron = st
+        stale = any(s is None or now - s > self.timeout for s in (
+            st.t_s, self.ref[4] if self.ref else None, self.att[2] if self.att else None))
+        if not self.enabled or stale or not st.vertical.valid:
+            _count(self.out.notes, 'dob_withheld')
+            self._reset()
+            return
+        ref, att = self._used_reference(st), self.att
+        dt = st.t_s - self.last_t
+        if ref[3] != self.frame_used and not self.need_reset:
+            self._reset()
+        if self.need_reset or not 0.0 < dt <= self.timeout:
+            self.ctrl.reset()
+            dt = self.period
+        inp = altitude_input(st.vertical, ref[0], ref[1], ref[2], ref[3], att[0], att[1],
+                             self.offset, self.ff)
+        o = self.ctrl.step(inp, dt)
+        self.need_reset = False
+        self.last_t = st.t_s
+        self.frame_used = ref[3]
+        self.out.thrust[st.t_s] = o.thrust_n
+        self.out.observer[st.t_s] = (o.sigma, o.d_hat_mps2, o.e_z_m)
+
+
+_EST_KINDS = ('imu', 'odom', 'velocity', 'range', 'blocks')
+#: Scale of each apron_state_v1 field in the alignment distance (m, m/s); flags weigh 100.
+_ALIGN_SCALE = {5: 0.01, 6: 0.01, 7: 0.05, 8: 0.05, 20: 0.01, 21: 0.05, 22: 0.01, 23: 0.05,
+                24: 0.01, 25: 0.05, 26: 0.5}
+#: Most candidate positions tried per output (bounds the cost of a long backlog).
+MAX_CANDIDATES = 8
+#: An input that reached the recorder this much after the node's clock said ``t_s`` may
+#: still have been handled before that state (the two processes receive independently).
+ARRIVAL_SLACK_S = 0.002
+
+
+def _align_distance(a: Sequence[float], b: Sequence[float]) -> float:
+    d = sum(abs(a[i] - b[i]) / s for i, s in _ALIGN_SCALE.items())
+    return d + 100.0 * sum((a[i] > 0.5) != (b[i] > 0.5) for i in (2, 3, 19))
+
+
+def replay_estimator(golden: Golden, out: Replay | None = None, make: Any = None) -> Replay:
+    """The estimator stage: recorded sensor inputs → ``apron/state`` at each recorded ``t_s``.
+
+    The node handles its inputs in arrival order (≈ the bag's order) but may lag behind (a
+    backlog under load), so the position in the input stream at which it published a state is
+    reconstructed, never assumed from the bag time alone:
+
+    * the state's own ``camera_stamp_s`` names the last camera frame the node had processed:
+      that frame was fed, the next one was not;
+    * an input that reached the recorder after the state's ``t_s`` (+ 2 ms) was not fed;
+    * positions never go back, and a state is published right after an IMU message or a
+      camera frame (the node's two triggers).
+
+    Among the (≤ 8) positions left, the one whose predicted state is closest to the recorded
+    one is taken (copies of the estimator are stepped for the alternatives). This picks *when*
+    the node published, out of a few causal orderings; it cannot absorb a change of the
+    estimator itself, which moves every candidate (README-golden.md, decision 2).
+    """
+    import copy
+
+    out = out if out is not None else Replay()
+    est, _, _, _ = (make or make_cores)(golden.meta)
+    feed = _EstimatorFeed(est, node_params(golden.meta, 'apron_estimator'), out.rejected)
+    inputs = [e for e in golden.events if e.kind in _EST_KINDS]
+    frame_pos = {e.data[0]: i for i, e in enumerate(inputs) if e.kind == 'blocks'}
+    frames = sorted(frame_pos.values())
+    arrival = [e.t_ns * 1e-9 for e in inputs]
+    pos = 0                     # inputs[:pos] have been fed to ``feed``
+
+    def advance(f: _EstimatorFeed, start: int, stop: int) -> None:
+        for j in range(start, stop):
+            f.feed(arrival[j], inputs[j])
+
+    import bisect
+    for e in golden.events:
+        if e.kind != 'apron':
+            continue
+        data = e.data[0]
+        t, cam = data[0], data[1]
+        lo = pos
+        if math.isfinite(cam) and cam in frame_pos:
+            fp = frame_pos[cam]
+            lo = max(lo, fp + 1)
+            k = bisect.bisect_right(frames, fp)
+            hi = frames[k] if k < len(frames) else len(inputs)
+        else:
+            hi = frames[0] if frames else len(inputs)
+        hi = min(hi, bisect.bisect_right(arrival, t + ARRIVAL_SLACK_S))
+        hi = max(hi, lo)
+        cands = [p for p in range(lo + 1, hi + 1) if inputs[p - 1].kind in ('imu', 'blocks')]
+        cands = cands[:MAX_CANDIDATES]
+        advance(feed, pos, lo)
+        pos = lo
+        best = feed.est.state(t).to_array()
+        best_d = _align_distance(best, data)
+        best_feed, best_pos = feed, lo
+        f, fpos = feed, lo
+        for p in cands:
+            if best_d == 0.0:
+                break
+            f = copy.deepcopy(f) if f is feed else f
+            advance(f, fpos, p)
+            fpos = p
+            st = f.est.state(t).to_array()
+            d = _align_distance(st, data)
+            if d < best_d:
+                best, best_d = st, d
+                best_feed, best_pos = copy.deepcopy(f), p
+        if best_feed is not feed:
+            _count(out.notes, 'estimator_later_position')
+            best_feed.rejected = out.rejected
+            feed, pos = best_feed, best_pos
+        out.apron[t] = tuple(best)
+    return out
+
+
+def replay_cores(golden: Golden, make: Any = None) -> Replay:
+    """Replay the golden inputs through the pure cores, as the three nodes run them.
+
+    Events are taken in bag (receive) order; the bag time of an event stands for the node
+    clock's ``now`` when it was handled. Each stage is fed what its node received:
+
+    * the estimator gets the sensor topics (:func:`replay_estimator`);
+    * the planner and the altitude controller step on each *recorded* ``apron/state`` (so a
+      difference in one stage does not hide or smear one in the next), the planner with
+      ``now`` = the bag time of that message; the altitude controller with the latest IMU
+      attitude and the recorded ``planner/reference`` it used (:class:`_DobFeed`);
+    * ``start_landing`` is called at the bag time of the first ``planner/mode`` leaving IDLE,
+      and the planner's watchdog steps (apron state stale: a recorded reference whose stamp is
+      no apron ``t_s``) are stepped on ``ApronState.untracked(stamp)`` at that stamp.
+
+    ``make(meta)`` replaces :func:`make_cores` (tests build deliberately changed cores).
+    """
+    from apron_estimator.types import ApronState
+
+    out = Replay()
+    replay_estimator(golden, out, make)
+    _, planner, horizontal, ctrl = (make or make_cores)(golden.meta)
+    pfeed = _PlannerFeed(planner, horizontal, node_params(golden.meta, 'landing_planner'), out)
+    dfeed = _DobFeed(ctrl, node_params(golden.meta, 'dob_altitude'), out,
+                     [e.data for e in golden.events if e.kind == 'reference'],
+                     {e.data[0]: e.data[1] for e in golden.events if e.kind == 'observer'})
+    apron_stamps = {e.data[0][0] for e in golden.events if e.kind == 'apron'}
+    started = False
+    for e in golden.events:
+        now = e.t_ns * 1e-9
+        k = e.kind
+        if k in ('odom', 'velocity', 'landed'):
+            pfeed.feed(now, e)
+        elif k == 'imu':
+            dfeed.on_imu(now, e.data)
+        elif k == 'mode':
+            if not started and e.data[0] not in ('IDLE', 'LANDED'):
+                started = True
+                pfeed.start_landing(now)
+        elif k == 'enabled':
+            dfeed.on_enabled(e.data[0])
+        elif k == 'reference':
+            stamp = e.data[0]
+            if stamp not in apron_stamps and stamp not in out.reference:
+                pfeed.step(stamp, ApronState.untracked(stamp))   # the node's watchdog
+                _count(out.notes, 'planner_watchdog_steps')
+            dfeed.on_reference(now, e.data)
+        elif k == 'apron':
+            st = ApronState.from_array(e.data[0])
+            pfeed.on_apron(now, st)
+            dfeed.on_apron(now, st)
+    return out
+
+
+# ========================================================================== comparison
+
+
+def _percentile(values: list[float], q: float) -> float:
+    if not values:
+        return 0.0
+    s = sorted(values)
+    return s[min(len(s) - 1, math.ceil(q * len(s)) - 1)]
+
+
+@dataclass
+class Check:
+    """One compared quantity: errors over the matched samples and the verdict."""
+
+    name: str
+    n: int
+    p99: float
+    max: float
+    tol: tuple[float, float]
+    worst_at: float = math.nan
+
+    @property
+    def ok(self) -> bool:
+        return self.p99 <= self.tol[0] and self.max <= self.tol[1]
+
+    def __str__(self) -> str:
+        flag = 'ok  ' if self.ok else 'FAIL'
+        return (f'{flag} {self.name:<26} n={self.n:<5d} p99={self.p99:.3g} max={self.max:.3g} '
+                f'(tol {self.tol[0]:g}/{self.tol[1]:g}) worst at t={self.worst_at:.3f}')
+
+
+@dataclass
+class Report:
+    checks: list[Check]
+    matched: dict[str, tuple[int, int]]     # topic → (matched, recorded)
+    min_matched: float
+    notes: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def failures(self) -> list[str]:
+        bad = [str(c) for c in self.checks if not c.ok]
+        for topic, (m, n) in self.matched.items():
+            if n == 0 or m < self.min_matched * n:
+                bad.append(f'FAIL {topic}: matched {m} of {n} recorded samples '
+                           f'(need {self.min_matched:.0%})')
+        return bad
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures
+
+    def __str__(self) -> str:
+        lines = [str(c) for c in self.checks]
+        lines += [f'{"ok  " if m >= self.min_matched * n and n else "FAIL"} {t}: '
+                  f'{m}/{n} matched' for t, (m, n) in self.matched.items()]
+        lines += [f'note {k}: {v}' for k, v in self.notes.items()]
+        return '\n'.join(lines)
+
+
+#: apron_state_v1 indices compared, by tolerance group (t_s is the key; epoch compared as is).
+_APRON_GROUPS = {
+    'apron_pos_m': (5, 6, 11, 12, 15, 16),
+    'apron_vel_mps': (7, 8, 13, 14, 17, 18),
+    'height_m': (20, 22, 24, 28),
+    'vspeed_mps': (21, 23, 25),
+}
+_APRON_FLAGS = (2, 3, 19, 27)   # tracked, visible, vertical_valid, surface_epoch
+
+
+def _match(recorded: dict[float, Any], replayed: dict[float, Any],
+           window_s: float) -> list[tuple[float, Any, Any]]:
+    """Pairs (stamp, recorded, replayed): equal stamps, or the nearest within ``window_s``."""
+    if window_s <= 0.0:
+        return [(t, v, replayed[t]) for t, v in recorded.items() if t in replayed]
+    keys = sorted(replayed)
+    out = []
+    import bisect
+    for t, v in recorded.items():
+        i = bisect.bisect_left(keys, t)
+        best = None
+        for j in (i - 1, i):
+            if 0 <= j < len(keys) and abs(keys[j] - t) <= window_s and (
+                    best is None or abs(keys[j] - t) < abs(best - t)):
+                best = keys[j]
+        if best is not None:
+            out.append((t, v, replayed[best]))
+    return out
+
+
+def _check(name: str, pairs: Iterable[tuple[float, float, float]],
+           tol: tuple[float, float]) -> Check:
+    errs, worst, worst_t = [], -1.0, math.nan
+    for t, a, b in pairs:
+        err = abs(a - b) if math.isfinite(a) or math.isfinite(b) else 0.0
+        if a == b:
+            err = 0.0
+        if not math.isfinite(err):
+            err = math.inf
+        errs.append(err)
+        if err > worst:
+            worst, worst_t = err, t
+    return Check(name, len(errs), _percentile(errs, 0.99), max(errs, default=0.0), tol,
+                 worst_t)
+
+
+def recorded_outputs(golden: Golden) -> Replay:
+    """The recorded outputs in the same shape as :class:`Replay` (keyed by stamp)."""
+    from deckland_common.frames import quaternion_to_euler
+
+    rec = Replay()
+    for e in golden.events:
+        d = e.data
+        if e.kind == 'apron':
+            rec.apron[d[0][0]] = d[0]
+        elif e.kind == 'reference':
+            rec.reference[d[0]] = (d[1], d[2], d[3], d[4], d[5])
+        elif e.kind == 'attitude':
+            rec.attitude[d[0]] = quaternion_to_euler(*d[1])
+        elif e.kind == 'thrust':
+            rec.thrust[d[0]] = d[1]
+        elif e.kind == 'observer':
+            rec.observer[d[0]] = d[1]
+        elif e.kind == 'mode':
+            rec.modes.append((e.t_ns * 1e-9, d[0]))
+    return rec
+
+
+def compare(recorded: Replay, replayed: Replay, tol: Tolerances, *,
+            time_offset_s: float = 0.0) -> Report:
+    """Compare ``replayed`` with ``recorded`` (stamps of ``replayed`` minus ``time_offset_s``)."""
+    from deckland_common.frames import wrap_pi
+
+    def shift(d: dict[float, Any]) -> dict[float, Any]:
+        return d if time_offset_s == 0.0 else {t - time_offset_s: v for t, v in d.items()}
+
+    checks: list[Check] = []
+    matched: dict[str, tuple[int, int]] = {}
+    w = tol.stamp_s
+
+    ap_all = _match(recorded.apron, shift(replayed.apron), w)
+    matched['apron/state'] = (len(ap_all), len(recorded.apron))
+    # values compared where tracked/visible/valid agree (disagreements: the flags check)
+    ap = [(t, a, b) for t, a, b in ap_all
+          if not any((a[i] > 0.5) != (b[i] > 0.5) for i in _APRON_FLAGS[:3])]
+    for group, idx in _APRON_GROUPS.items():
+        checks.append(_check(f'apron {group}', ((t, a[i], b[i]) for t, a, b in ap for i in idx
+                                                if a[2] > 0.5 or i >= 19), getattr(tol, group)))
+    n_flag = sum(1 for t, a, b in ap_all if any((a[i] > 0.5) != (b[i] > 0.5)
+                                                for i in _APRON_FLAGS[:3]) or a[27] != b[27])
+    pct = 100.0 * n_flag / max(1, len(ap_all))
+    checks.append(Check('apron flags (disagree %)', len(ap_all), pct, pct,
+                        (1.0, 1.0) if w == 0.0 else (5.0, 5.0)))
+
+    rp = _match(recorded.reference, shift(replayed.reference), w)
+    matched['planner/reference'] = (len(rp), len(recorded.reference))
+    checks.append(_check('reference z_d', ((t, a[1][2], b[1][2]) for t, a, b in rp),
+                         tol.ref_z_m))
+    checks.append(_check('reference z_d_dot', ((t, a[2][2], b[2][2]) for t, a, b in rp),
+                         tol.ref_z_dot_mps))
+    checks.append(_check('reference z_d_ddot', ((t, a[3], b[3]) for t, a, b in rp),
+                         (tol.ref_z_dot_mps[0] * 10, tol.ref_z_dot_mps[1] * 10)))
+    checks.append(_check('reference setpoint xy', ((t, a[1][i], b[1][i]) for t, a, b in rp
+                                                   for i in (0, 1)), tol.ref_xy_m))
+    checks.append(_check('reference ff xy', ((t, a[2][i], b[2][i]) for t, a, b in rp
+                                             for i in (0, 1)), tol.ref_z_dot_mps))
+    checks.append(_check('reference yaw', ((t, 0.0, wrap_pi(a[4] - b[4])) for t, a, b in rp),
+                         tol.attitude_rad))
+
+    at = _match(recorded.attitude, shift(replayed.attitude), w)
+    matched['control/attitude'] = (len(at), len(recorded.attitude))
+    checks.append(_check('attitude roll/pitch', ((t, a[i], b[i]) for t, a, b in at
+                                                 for i in (0, 1)), tol.attitude_rad))
+    checks.append(_check('attitude yaw', ((t, 0.0, wrap_pi(a[2] - b[2])) for t, a, b in at),
+                         tol.attitude_rad))
+
+    th = _match(recorded.thrust, shift(replayed.thrust), w)
+    matched['control/thrust'] = (len(th), len(recorded.thrust))
+    checks.append(_check('thrust u_z', th, tol.thrust_n))
+    ob = _match(recorded.observer, shift(replayed.observer), w)
+    matched['altitude/observer'] = (len(ob), len(recorded.observer))
+    checks.append(_check('observer sigma, d_hat', ((t, a[i], b[i]) for t, a, b in ob
+                                                   for i in (0, 1)), tol.observer))
+    checks.append(_check('observer e_z', ((t, a[2], b[2]) for t, a, b in ob), tol.ref_z_m))
+    notes = dict(replayed.notes)
+    notes.update({f'rejected {k}': v for k, v in replayed.rejected.items()})
+    notes['modes recorded'] = ' '.join(m for _, m in recorded.modes)
+    notes['modes replayed'] = ' '.join(m for _, m in replayed.modes)
+    return Report(checks, matched, tol.min_matched, notes)
+
+
+def mode_sequence(modes: Sequence[tuple[float, str]]) -> list[str]:
+    """Mode names without repeats (``planner/mode`` is latched: IDLE may appear twice)."""
+    out: list[str] = []
+    for _, m in modes:
+        if not out or out[-1] != m:
+            out.append(m)
+    return out
+
+
+# ================================================================ recording (ROS, make golden)
+
+
+def _isolate_ros_domain() -> None:
+    """A private DDS domain on loopback unless the caller chose one (before rclpy loads)."""
+    os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(101, 200)))
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+
+def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
+           seed: int = DEFAULT_SEED, *, timeout_s: float = 60.0, log: Any = sys.stderr) -> Path:
+    """Fly one landing with the real graph and write the trimmed golden bag into ``out_dir``.
+
+    The recorder (explicit topic list, on the monitor's context) is subscribed before the
+    nodes start, so the bag holds every input from the first one; the landing is triggered
+    as ``deckland up`` does (offboard, then ``planner/start_landing`` 1 s after every topic
+    flows). ``out_dir`` is replaced only if it is empty or an earlier golden bag.
+    """
+    _isolate_ros_domain()
+    from deckland.bag import Recorder
+    from deckland.orchestrator import Orchestrator, load_graph
+    from deckland.up import MissionMonitor, default_graph_path, graph_substitutions
+
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()) and not (out / META_NAME).exists():
+        raise ValueError(f'{out} is not empty and not a golden bag; not overwriting')
+    args = argparse.Namespace(scenario=scenario, seed=seed, hardware=False, mavlink=None,
+                              pixy_port=None, area=(0.0, 0.0))
+    graph = load_graph(default_graph_path(), graph_substitutions(args), False)
+    overrides = {n.name: dict(n.parameters) for n in graph['nodes'] if n.name in NODE_DEFAULTS}
+    work = Path(tempfile.mkdtemp(prefix='deckland-golden-'))
+    raw = work / 'raw'
+    monitor = MissionMonitor(graph['wait_for_topics'])
+    recorder = Recorder(raw, topics=[*INPUT_TOPICS, *OUTPUT_TOPICS, '/sim/outcome'],
+                        context=monitor.context, discovery_period_s=0.05, depth=1000)
+    sim = [n for n in graph['nodes'] if n.sim_only]
+    orch = Orchestrator([n for n in graph['nodes'] if not n.sim_only], out=log,
+                        stop_timeout_s=5.0)
+    orch_sim = Orchestrator(sim, out=log, stop_timeout_s=5.0)
+    outcome = None
+    try:
+        recorder.start()
+        orch.start()
+        # every subscription in place before the simulator makes data flow: the bag then
+        # holds each node's inputs from the very first message
+        _wait_subscribed(monitor.node, recorder, 30.0)
+        orch_sim.start()
+        silent = monitor.wait_flowing(40.0)
+        if silent:
+            raise RuntimeError(f'start-up failed: silent topics {silent}')
+        time.sleep(1.0)
+        monitor.trigger('bridge/offboard')
+        ok, msg = monitor.trigger('planner/start_landing')
+        if not ok:
+            raise RuntimeError(f'start_landing refused: {msg}')
+        deadline = time.monotonic() + timeout_s
+        while monitor.outcome is None and time.monotonic() < deadline:
+            orch.check()
+            time.sleep(0.05)
+        outcome = monitor.outcome
+        time.sleep(0.2)
+    finally:
+        orch_sim.stop()
+        orch.stop()
+        recorder.stop()
+        monitor.close()
+    if outcome is None or not outcome.get('success'):
+        shutil.rmtree(work, ignore_errors=True)
+        raise RuntimeError(f'the reference landing did not succeed: {outcome}')
+    trimmed = work / 'golden'
+    window = trim(raw, trimmed)
+    meta = {'version': META_VERSION, 'scenario': scenario, 'seed': seed,
+            'recorded_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+            'window_ns': list(window), 'outcome': outcome, 'parameters': overrides,
+            'note': 'regenerate deliberately with `make golden`; never written by tests'}
+    (trimmed / META_NAME).write_text(yaml.safe_dump(meta, sort_keys=False))
+    size = sum(p.stat().st_size for p in trimmed.iterdir())
+    if size > MAX_BAG_BYTES:
+        raise RuntimeError(f'golden bag is {size} bytes (> {MAX_BAG_BYTES}); not installed')
+    if out.exists():
+        shutil.rmtree(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(trimmed, out)
+    shutil.rmtree(work, ignore_errors=True)
+    return out
+
+
+#: Subscribers each topic has once the graph (without the simulator) and the recorder are up.
+_SUBSCRIBERS = {'/vehicle/imu': 3, '/vehicle/odom': 3, '/vehicle/velocity': 3,
+                '/vehicle/range': 2, '/pixy/blocks': 2, '/apron/state': 3,
+                '/planner/reference': 2}
+
+
+def _wait_subscribed(node: Any, recorder: Any, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if (set(INPUT_TOPICS) - {'/planner/mode'} <= set(recorder.subscribed)
+                and all(node.count_subscribers(t) >= n for t, n in _SUBSCRIBERS.items())):
+            time.sleep(0.5)   # endpoint matching settles
+            return
+        time.sleep(0.05)
+    raise RuntimeError(f'subscriptions not in place after {timeout_s} s '
+                       f'(recorder has {recorder.subscribed})')
+
+
+def trim(raw_dir: Path, out_dir: Path) -> tuple[int, int]:
+    """Copy the replay's topics from ``raw_dir`` into a new bag, first input to outcome.
+
+    The window starts at the first input message and ends 0.2 s after ``sim/outcome`` (the
+    touchdown). Latched topics keep their messages from before the window (stamped at its
+    start). Offered QoS profiles are copied explicitly. Returns the window (ns).
+    """
+    from rosbags.highlevel import AnyReader
+
+    from deckland.bag import BagWriter
+
+    keep = set(INPUT_TOPICS) | set(OUTPUT_TOPICS)
+    latched = {'/vehicle/landed', '/planner/mode', '/control/enabled'}
+    with AnyReader([raw_dir]) as reader:
+        first = min((t for c, t, _ in reader.messages()
+                     if c.topic in INPUT_TOPICS and c.topic not in latched), default=None)
+        ends = [t for c, t, _ in reader.messages() if c.topic == '/sim/outcome']
+        if first is None or not ends:
+            raise RuntimeError(f'{raw_dir}: no inputs or no outcome recorded')
+        end = ends[0] + 200_000_000
+        writer = BagWriter(out_dir)
+        try:
+            for c in reader.connections:
+                if c.topic in keep:
+                    writer.add_topic(c.topic, c.msgtype, list(c.ext.offered_qos_profiles))
+            for c, t, data in reader.messages():
+                if c.topic not in keep or t > end:
+                    continue
+                if t < first:
+                    if c.topic not in latched:
+                        continue
+                    t = first
+                writer.write(c.topic, t, data)
+        finally:
+            writer.close()
+    return first, end
+
+
+# ============================================================== node replay (ROS, bag play)
+
+
+def shifted_copy(bag_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
+                 offset_ns: int, topics: Iterable[str] = PLAY_TOPICS) -> int:
+    """Copy ``topics`` into a new bag with every time moved by ``offset_ns``; returns count.
+
+    The nodes reject stale stamps against their own (wall) clock, so a bag recorded earlier
+    must be re-stamped to be played into them. Every played topic starts with a
+    ``std_msgs/Header`` except ``vehicle/landed``: its CDR stamp (bytes 4-11 after the 4-byte
+    encapsulation header: int32 sec, uint32 nanosec, little endian) is rewritten in place,
+    nothing else is touched. Bag times move by the same offset.
+    """
+    from rosbags.highlevel import AnyReader
+
+    from deckland.bag import BagWriter
+
+    wanted = set(topics)
+    n = 0
+    writer = BagWriter(out_dir)
+    try:
+        with AnyReader([Path(bag_dir)]) as reader:
+            conns = [c for c in reader.connections if c.topic in wanted]
+            for c in conns:
+                writer.add_topic(c.topic, c.msgtype, list(c.ext.offered_qos_profiles))
+            for c, t, raw in reader.messages(connections=conns):
+                data = bytearray(raw)
+                if c.topic != '/vehicle/landed':
+                    if data[1] != 1:
+                        raise ValueError(f'{c.topic}: not little-endian CDR')
+                    sec = int.from_bytes(data[4:8], 'little', signed=True)
+                    nsec = int.from_bytes(data[8:12], 'little')
+                    stamp = sec * 1_000_000_000 + nsec + offset_ns
+                    data[4:8] = (stamp // 1_000_000_000).to_bytes(4, 'little', signed=True)
+                    data[8:12] = (stamp % 1_000_000_000).to_bytes(4, 'little')
+                writer.write(c.topic, t + offset_ns, bytes(data))
+                n += 1
+    finally:
+        writer.close()
+    return n
+
+
+def replay_nodes(bag_dir: str | os.PathLike[str], context: Any, executor: Any, *,
+                 lead_s: float = 1.5, tail_s: float = 0.5) -> tuple[Replay, float]:
+    """Run the three nodes in ``context``, play the golden inputs into them, collect outputs.
+
+    The estimator, planner and altitude nodes are created with the recorded parameters and
+    added to ``executor`` (which must be spinning). The inputs are re-stamped to start
+    ``lead_s`` from now (:func:`shifted_copy`) and played with :func:`deckland.bag.play` at
+    rate 1.0; ``planner/start_landing`` is called through its service at the recorded trigger
+    time. Returns the outputs (stamps as published) and the offset (s) to subtract to compare
+    them with the recording (:func:`compare` ``time_offset_s``).
+    """
+    import threading
+
+    from apron_estimator.node import ApronEstimatorNode
+    from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
+    from dob_altitude.node import DobAltitudeNode
+    from geometry_msgs.msg import QuaternionStamped, Vector3Stamped, WrenchStamped
+    from landing_planner.node import LandingPlannerNode
+    import rclpy
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import Float64MultiArray, String
+    from std_srvs.srv import Trigger
+    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from deckland.bag import play
+
+    golden = load(bag_dir)
+    overrides = {node: [Parameter(k, value=v) for k, v in
+                        ((golden.meta.get('parameters') or {}).get(node) or {}).items()]
+                 for node in NODE_DEFAULTS}
+    nodes = [ApronEstimatorNode(context=context,
+                                parameter_overrides=overrides['apron_estimator']),
+             LandingPlannerNode(context=context,
+                                parameter_overrides=overrides['landing_planner']),
+             DobAltitudeNode(context=context, parameter_overrides=overrides['dob_altitude'])]
+    for n in nodes:
+        executor.add_node(n)
+    helper = rclpy.create_node('golden_collector', context=context)
+    executor.add_node(helper)
+    got: list[tuple[str, Any]] = []
+    lock = threading.Lock()
+
+    def sub(cls: type, topic: str, qos: Any = RELIABLE_QOS) -> None:
+        def cb(msg: Any, _topic: str = topic) -> None:
+            with lock:
+                got.append((_topic, msg))
+        helper.create_subscription(cls, topic.lstrip('/'), cb, qos)
+
+    sub(Float64MultiArray, '/apron/state')
+    sub(MultiDOFJointTrajectory, '/planner/reference')
+    sub(QuaternionStamped, '/control/attitude')
+    sub(WrenchStamped, '/control/thrust')
+    sub(Vector3Stamped, '/altitude/observer')
+    sub(String, '/planner/mode', LATCHED_QOS)
+    client = helper.create_client(Trigger, 'planner/start_landing')
+    if not client.wait_for_service(timeout_sec=10.0):
+        raise RuntimeError('planner/start_landing not available')
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and not all(
+            helper.count_publishers(t) >= 1 for t in ('apron/state', 'planner/reference',
+                                                      'control/thrust')):
+        time.sleep(0.05)
+
+    first_ns = golden.meta['window_ns'][0]
+    triggers = [e.t_ns for e in golden.events
+                if e.kind == 'mode' and e.data[0] not in ('IDLE', 'LANDED')]
+    work = Path(tempfile.mkdtemp(prefix='deckland-golden-play-'))
+    try:
+        start_wall = time.time() + lead_s
+        offset_ns = int(start_wall * 1e9) - first_ns
+        shifted_copy(bag_dir, work / 'play', offset_ns)
+        offset_s = offset_ns * 1e-9
+        stop = threading.Event()
+
+        def trigger() -> None:
+            if not triggers:
+                return
+            wait = triggers[0] * 1e-9 + offset_s - time.time()
+            if wait > 0 and stop.wait(wait):
+                return
+            future = client.call_async(Trigger.Request())
+            end = time.monotonic() + 5.0
+            while not future.done() and time.monotonic() < end:
+                time.sleep(0.005)
+
+        th = threading.Thread(target=trigger, daemon=True)
+        th.start()
+        play(work / 'play', rate=1.0, context=context,
+             delay_s=max(0.0, start_wall - time.time()), stop_event=stop)
+        time.sleep(tail_s)
+        stop.set()
+        th.join(timeout=6.0)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    out = Replay()
+    with lock:
+        items = list(got)
+    for topic, msg in items:
+        kind, d = _decode(topic, msg)
+        if kind == 'apron':
+            out.apron[d[0][0]] = d[0]
+        elif kind == 'reference':
+            out.reference[d[0]] = (d[1], d[2], d[3], d[4], d[5])
+        elif kind == 'attitude':
+            from deckland_common.frames import quaternion_to_euler
+            out.attitude[d[0]] = quaternion_to_euler(*d[1])
+        elif kind == 'thrust':
+            out.thrust[d[0]] = d[1]
+        elif kind == 'observer':
+            out.observer[d[0]] = d[1]
+        elif kind == 'mode':
+            out.modes.append((0.0, d[0]))
+    return out, offset_s
+
+
+# ======================================================================================= CLI
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m deckland.golden record DIR`` | ``check DIR`` (pure replay report)."""
+    parser = argparse.ArgumentParser(prog='python -m deckland.golden',
+                                     description='golden-bag regression (make golden)')
+    sub = parser.add_subparsers(dest='verb', required=True)
+    rec = sub.add_parser('record', help='fly the reference landing and (re)write DIR')
+    rec.add_argument('dir')
+    rec.add_argument('--scenario', default=DEFAULT_SCENARIO)
+    rec.add_argument('--seed', type=int, default=DEFAULT_SEED)
+    chk = sub.add_parser('check', help='replay DIR through the pure cores and compare')
+    chk.add_argument('dir')
+    args = parser.parse_args(argv)
+    if args.verb == 'record':
+        try:
+            out = record(args.dir, args.scenario, args.seed)
+        except (RuntimeError, ValueError, OSError) as exc:
+            print(f'golden record: {exc}', file=sys.stderr)
+            return 1
+        size = sum(p.stat().st_size for p in out.iterdir())
+        print(f'golden bag written to {out} ({size / 1024:.0f} KiB)')
+        return 0
+    golden = load(args.dir)
+    report = compare(recorded_outputs(golden), replay_cores(golden), CORE_TOLERANCES)
+    print(report)
+    return 0 if report.ok else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
