@@ -36,6 +36,7 @@ from mavlink_bridge.core import (
     MAV_CMD_SET_MESSAGE_INTERVAL,
     BridgeCore,
     BridgeParams,
+    StreamLimiter,
 )
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
@@ -264,14 +265,80 @@ def test_core_rejects_bad_input_and_keeps_state():
     assert core.step(math.nan) == []
 
 
-def test_core_rate_limit():
-    core = link_core(BridgeParams(stream_rate_hz=50.0))
-    sent = 0
-    for i in range(400):                         # 400 Hz input for 1 s
-        t = i / 400.0
-        core.on_attitude_command(t, t, q_of(0, 0, 0))
-        sent += core.on_thrust_command(t, t, 20.0) is not None
-    assert 48 <= sent <= 51
+def _stream(core, events):
+    """Feed (receive time, source stamp) thrust commands; return the receive times sent."""
+    sent = []
+    for t, stamp in events:
+        core.on_attitude_command(t, stamp, q_of(0, 0, 0))
+        if core.on_thrust_command(t, stamp, 20.0) is not None:
+            sent.append(t)
+    return sent
+
+
+def test_limiter_caps_a_flood_at_max_stream_rate():
+    # 1 kHz of commands for 1 s, each only 1 ms newer than the previous: the bucket holds the
+    # long-term rate to max_stream_rate_hz (+ the initial burst), and once it is empty the
+    # sends are exactly 1/rate apart
+    core = link_core(BridgeParams(max_stream_rate_hz=250.0, stream_burst=3))
+    sent = _stream(core, [(i * 1e-3, i * 1e-3) for i in range(1000)])
+    assert 250 <= len(sent) <= 250 + 3
+    steady = [b - a for a, b in itertools.pairwise(sent[10:])]
+    assert min(steady) >= 0.004 - 1e-9 and max(steady) <= 0.004 + 1e-3 + 1e-9
+    assert core.counters['rate_limited'] == 1000 - len(sent)
+
+
+def test_imu_and_camera_commands_of_one_instant_both_go_out():
+    # The control clock: a command per 100 Hz IMU state; every second tick a camera frame of
+    # the same instant produces a second state (and command) 1 ms later, with a stamp only
+    # 1 ms newer. Both must go out at once (the camera one carries the new image).
+    events = []
+    for k in range(250):
+        t = 0.1 + k * 0.01
+        events.append((t, t))
+        if k % 2 == 0:
+            events.append((t + 0.001, t + 0.001))
+    core = link_core(BridgeParams(max_stream_rate_hz=250.0, stream_burst=3))
+    assert len(_stream(core, events)) == len(events)             # 150 Hz < 250 Hz: nothing
+    assert core.counters['rate_limited'] == 0
+    # a plain minimum interval (burst 1) drops exactly those camera commands (why the
+    # default is a bucket); the old 0.9 / 100 Hz interval dropped them too
+    plain = link_core(BridgeParams(max_stream_rate_hz=250.0, stream_burst=1))
+    assert len(_stream(plain, events)) == 250
+    assert plain.counters['rate_limited'] == 125
+
+
+def test_fresh_data_is_never_rate_limited():
+    # A cap far below the input rate (10 Hz, burst 1): commands whose source stamp is one
+    # camera period (20 ms) newer than the last one sent still go out, the rest are thinned.
+    p = BridgeParams(max_stream_rate_hz=10.0, stream_burst=1, fresh_period_s=0.02)
+    core = link_core(p)
+    events = [(0.1 + i * 0.005, 0.1 + i * 0.005) for i in range(400)]    # 200 Hz for 2 s
+    sent = _stream(core, events)
+    gaps = [b - a for a, b in itertools.pairwise(sent)]
+    assert max(gaps) <= p.fresh_period_s + 1e-9                         # never starved
+    assert min(gaps) >= p.fresh_period_s - 1e-9                         # but thinned
+    assert len(sent) == 100                                             # 50 Hz, not 10 Hz
+    # stale inputs still cut the stream, whatever the limiter says
+    core.on_attitude_command(2.2, 2.2, q_of(0, 0, 0))
+    assert core.on_thrust_command(2.2 + p.input_timeout_s + 0.01, 2.5, 20.0) is None
+    assert core.counters['stale_attitude'] == 1
+
+
+def test_limiter_refill_ignores_receive_time_going_backwards():
+    lim = StreamLimiter(250.0, 1, 0.02)
+    assert lim.allow(1.0, 1.0)
+    assert not lim.allow(0.5, 1.001)       # no refill from a backwards receive time
+    assert not lim.allow(1.001, 1.002)
+    assert lim.allow(1.004, 1.003)         # 4 ms later: one token again
+
+
+@pytest.mark.parametrize('field, value', [('stream_burst', 0), ('stream_burst', True),
+                                          ('stream_burst', 2.5), ('max_stream_rate_hz', 0.0),
+                                          ('fresh_period_s', math.nan),
+                                          ('fresh_period_s', 0.6)])
+def test_stream_parameters_are_validated(field, value):
+    with pytest.raises(ValueError, match=field):
+        BridgeParams(**{field: value})
 
 
 def test_core_offboard_waits_for_warm_stream_then_retries_until_heartbeat():

@@ -212,3 +212,68 @@ def test_garbage_bytes_do_not_crash_the_bridge(rig):
     assert wait_for(lambda: len(odom) > n + 5, 2.0)
     assert bridge._reader.is_alive()
     assert bridge.core.rejected['bad_data'] > 0
+
+
+@pytest.mark.parametrize('burst, expect_sent', [(3, 2), (1, 1)])
+def test_two_commands_1ms_apart_both_reach_the_autopilot(ros_context, burst, expect_sent):
+    """An IMU-triggered and a camera-triggered command of the same instant: with the default
+    bucket both SET_ATTITUDE_TARGETs are on the wire at once; a plain 4 ms minimum interval
+    (stream_burst 1) drops the second, as the old 9 ms limiter did."""
+    from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
+    from geometry_msgs.msg import QuaternionStamped, WrenchStamped
+    from mavlink_bridge.node import MavlinkBridgeNode
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    context, executor = ros_context
+    port = free_udp_port()
+    bridge = MavlinkBridgeNode(context=context, parameter_overrides=[
+        Parameter('connection', value=f'udpin:127.0.0.1:{port}'),
+        Parameter('stream_burst', value=burst)])
+    runner = EmulatorThread(Px4Emulator(EmulatorParams(bind_port=0, remote_port=port)))
+    helper = Node('mavlink_burst_helper', context=context)
+    executor.add_node(bridge)
+    executor.add_node(helper)
+    try:
+        pub_att = helper.create_publisher(QuaternionStamped, 'control/attitude', 10)
+        pub_thr = helper.create_publisher(WrenchStamped, 'control/thrust', 10)
+        assert wait_for(lambda: bridge.core.link_up(time.monotonic()), 3.0)
+        assert wait_for(lambda: pub_thr.get_subscription_count() >= 1, 3.0)
+        now_ns = helper.get_clock().now().nanoseconds
+        a = QuaternionStamped()
+        a.header.stamp.sec, a.header.stamp.nanosec = divmod(now_ns, 10**9)
+        a.quaternion.w = 1.0
+        pub_att.publish(a)
+        assert wait_for(lambda: bridge.core._att_stamp > 0.0, 2.0)
+        n0 = runner.emu.counters['setpoints_rx']
+        for i, force in enumerate((21.0, 23.0)):
+            f = WrenchStamped()
+            f.header.stamp.sec, f.header.stamp.nanosec = divmod(now_ns + i * 1_000_000, 10**9)
+            f.wrench.force.z = force
+            pub_thr.publish(f)
+        assert wait_for(lambda: bridge.core.counters['setpoints_sent']
+                        + bridge.core.counters['rate_limited'] >= 2, 2.0)
+        assert wait_for(lambda: runner.emu.counters['setpoints_rx'] - n0 >= expect_sent, 2.0)
+        time.sleep(0.1)
+        assert runner.emu.counters['setpoints_rx'] - n0 == expect_sent
+        assert bridge.core.counters['rate_limited'] == 2 - expect_sent
+        # the autopilot flies the newest command when both went out
+        expected = 23.0 if expect_sent == 2 else 21.0
+        assert runner.emu.setpoint.thrust_n == pytest.approx(expected, abs=1e-3)
+    finally:
+        runner.close()
+
+
+@pytest.mark.parametrize('name, value, needle', [
+    ('stream_burst', 0, 'stream_burst'), ('max_stream_rate_hz', -1.0, 'max_stream_rate_hz'),
+    ('fresh_period_s', 0.9, 'fresh_period_s')])
+def test_bad_stream_parameters_are_rejected(ros_context, name, value, needle):
+    from deckland_common.params import ParameterError
+    from mavlink_bridge.node import MavlinkBridgeNode
+    from rclpy.parameter import Parameter
+
+    context, _ = ros_context
+    with pytest.raises(ParameterError, match=needle):
+        MavlinkBridgeNode(context=context, parameter_overrides=[
+            Parameter('connection', value=f'udpin:127.0.0.1:{free_udp_port()}'),
+            Parameter(name, value=value)])

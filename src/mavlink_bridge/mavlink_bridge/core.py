@@ -9,6 +9,10 @@ what the core returns. The core decides:
   ``input_timeout_s``. When either input goes stale the stream simply stops, so the autopilot's
   own offboard-loss failsafe (PX4 ``COM_OF_LOSS_T``, ArduPilot's 1 s guided-attitude timeout)
   takes over; old setpoints are never repeated;
+* the stream rate: a new command is sent *at once* unless a token bucket (rate
+  ``max_stream_rate_hz``, depth ``stream_burst``) is empty; a command whose source stamp is at
+  least ``fresh_period_s`` (one camera period) newer than the last one sent is sent even then
+  (:class:`StreamLimiter`);
 * the offboard entry sequence: OFFBOARD (PX4) / GUIDED_NOGPS (ArduPilot) is requested only after
   setpoints have streamed continuously (gaps < ``max_stream_gap_s``, i.e. > 2 Hz) for
   ``offboard_warmup_s`` (> 1 s, as PX4 requires);
@@ -62,7 +66,9 @@ class BridgeParams:
     autopilot: str = 'px4'                 # 'px4' | 'ardupilot'
     input_timeout_s: float = 0.2           # max age of thrust and attitude commands
     link_timeout_s: float = 3.0            # autopilot HEARTBEAT age that means link lost
-    stream_rate_hz: float = 100.0          # max SET_ATTITUDE_TARGET rate
+    max_stream_rate_hz: float = 250.0      # long-term SET_ATTITUDE_TARGET cap (bucket refill)
+    stream_burst: int = 3                  # setpoints allowed back to back (bucket depth)
+    fresh_period_s: float = 0.02           # source stamp this much newer: always sent (50 Hz)
     offboard_warmup_s: float = 1.2         # streaming time before the mode request (> 1 s)
     max_stream_gap_s: float = 0.5          # larger gaps restart the warm-up (2 Hz minimum)
     heartbeat_period_s: float = 1.0
@@ -82,7 +88,7 @@ class BridgeParams:
         if self.autopilot not in ('px4', 'ardupilot'):
             raise ValueError(f"BridgeParams.autopilot = {self.autopilot!r}: must be 'px4' or "
                              "'ardupilot'")
-        for name in ('input_timeout_s', 'link_timeout_s', 'stream_rate_hz',
+        for name in ('input_timeout_s', 'link_timeout_s', 'max_stream_rate_hz', 'fresh_period_s',
                      'offboard_warmup_s', 'max_stream_gap_s', 'heartbeat_period_s',
                      'command_retry_s', 'command_timeout_s', 'interval_refresh_s',
                      'attitude_rate_hz', 'local_position_rate_hz', 'distance_sensor_rate_hz',
@@ -93,6 +99,13 @@ class BridgeParams:
         if self.offboard_warmup_s <= 1.0:
             raise ValueError(f'BridgeParams.offboard_warmup_s = {self.offboard_warmup_s!r}: '
                              'must be > 1 s (PX4 needs > 1 s of setpoints before OFFBOARD)')
+        if isinstance(self.stream_burst, bool) or not isinstance(self.stream_burst, int) or \
+                not 1 <= self.stream_burst <= 100:
+            raise ValueError(f'BridgeParams.stream_burst = {self.stream_burst!r}: must be an '
+                             'integer in [1, 100]')
+        if self.fresh_period_s > self.max_stream_gap_s:
+            raise ValueError(f'BridgeParams.fresh_period_s = {self.fresh_period_s!r}: must be '
+                             f'<= max_stream_gap_s ({self.max_stream_gap_s!r})')
         if self.max_stream_gap_s > 0.5:
             raise ValueError(f'BridgeParams.max_stream_gap_s = {self.max_stream_gap_s!r}: '
                              'must be <= 0.5 s (PX4 needs > 2 Hz)')
@@ -134,6 +147,53 @@ class Outgoing:
 
 
 _HEARTBEAT = Outgoing('heartbeat')
+
+
+class StreamLimiter:
+    """Data-aware cap of the SET_ATTITUDE_TARGET rate (pure; times in seconds).
+
+    A token bucket in receive time ``t_s``: it holds at most ``burst`` tokens, refilled at
+    ``rate_hz``; sending costs one token. So a command goes out the moment it arrives as long as
+    the *long-term* rate stays below ``rate_hz`` — two triggers that arrive together (the IMU
+    tick and a camera frame of the same instant, each producing a new state and a new thrust)
+    both pass, while a flood is held to ``rate_hz`` (the link budget). ``burst = 1`` is a plain
+    minimum interval of ``1 / rate_hz``.
+
+    Data-aware exception: a command whose *source stamp* is at least ``fresh_period_s`` newer
+    than that of the last command sent is never dropped (the bucket is then emptied, not
+    overdrawn): rate limiting may thin redundant commands, never starve new data.
+    """
+
+    __slots__ = ('_burst', '_fresh', '_last_sent_stamp', '_rate', '_t_s', '_tokens')
+
+    def __init__(self, rate_hz: float, burst: int, fresh_period_s: float) -> None:
+        self._rate = float(rate_hz)
+        self._burst = float(burst)
+        self._fresh = float(fresh_period_s)
+        self.reset()
+
+    def reset(self) -> None:
+        self._tokens = self._burst
+        self._t_s = -math.inf
+        self._last_sent_stamp = -math.inf
+
+    def allow(self, t_s: float, stamp_s: float) -> bool:
+        """True when a command received at ``t_s`` with source stamp ``stamp_s`` may be sent
+        now (and it is then accounted as sent). Inputs must be finite (the core checks)."""
+        dt = t_s - self._t_s
+        if dt > 0.0:  # a receive time going backwards refills nothing
+            tokens = self._tokens + dt * self._rate
+            self._tokens = tokens if tokens < self._burst else self._burst
+            self._t_s = t_s
+        # 1e-9: float rounding of tokens and of stamps (ROS stamps are integer ns)
+        if self._tokens >= 1.0 - 1e-9:
+            self._tokens = max(self._tokens - 1.0, 0.0)
+        elif stamp_s - self._last_sent_stamp >= self._fresh - 1e-9:
+            self._tokens = 0.0
+        else:
+            return False
+        self._last_sent_stamp = stamp_s
+        return True
 
 
 class _Request:
@@ -187,6 +247,8 @@ class BridgeCore:
         self._att_euler = (0.0, 0.0, 0.0)
         self.enabled = True
         # stream
+        self._limiter = StreamLimiter(self.params.max_stream_rate_hz, self.params.stream_burst,
+                                      self.params.fresh_period_s)
         self._last_sent_s = -math.inf
         self._stream_start_s = math.inf
         # periodic
@@ -304,7 +366,10 @@ class BridgeCore:
         """``control/thrust`` (u_z of (16), N). Returns the setpoint to send now, or None.
 
         None when: the input is bad, the bridge is disabled, the link is down, the attitude
-        command is older than ``input_timeout_s``, or the stream rate limit applies.
+        command is older than ``input_timeout_s``, or the stream limiter refuses it
+        (:class:`StreamLimiter`: only when commands arrive faster than ``max_stream_rate_hz``
+        for longer than ``stream_burst`` commands *and* carry data less than
+        ``fresh_period_s`` newer than the last one sent).
         """
         if not (math.isfinite(t_s) and math.isfinite(stamp_s) and math.isfinite(thrust_n)):
             self.rejected['nan'] += 1
@@ -323,7 +388,7 @@ class BridgeCore:
         if t_s - self._att_rx_s > p.input_timeout_s:
             self.counters['stale_attitude'] += 1
             return None
-        if t_s - self._last_sent_s < 0.9 / p.stream_rate_hz:
+        if not self._limiter.allow(t_s, stamp_s):
             self.counters['rate_limited'] += 1
             return None
         if t_s - self._last_sent_s > p.max_stream_gap_s:

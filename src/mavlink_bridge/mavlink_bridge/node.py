@@ -72,7 +72,15 @@ PARAMS = [
              'residual thrust curve expo e in F = Fmax(e n^2 + (1-e) n); 0 = linear'),
     positive('input_timeout_s', 0.2, 'max age of control/thrust and control/attitude'),
     positive('link_timeout_s', 3.0, 'autopilot heartbeat age that means link lost'),
-    positive('stream_rate_hz', 100.0, 'max SET_ATTITUDE_TARGET rate'),
+    positive('max_stream_rate_hz', 250.0,
+             'long-term cap of the SET_ATTITUDE_TARGET rate; each new control/thrust is sent '
+             'at once while the cap leaves room (token bucket refill rate)'),
+    in_range('stream_burst', 3, 1, 100,
+             'setpoints allowed back to back under the cap (token bucket depth; 1 = a plain '
+             'minimum interval of 1/max_stream_rate_hz)'),
+    positive('fresh_period_s', 0.02,
+             'a command whose stamp is this much newer than the last one sent is never '
+             'rate-limited (one camera period, 50 Hz); must be <= 0.5 s'),
     ParamSpec('offboard_warmup_s', 1.2, 'setpoint streaming before the OFFBOARD request',
               lambda v: v > 1.0, 'must be > 1.0'),
     ParamSpec('signing_key_file', '', 'MAVLink 2 signing key file (32 raw bytes or 64 hex '
@@ -117,7 +125,9 @@ class MavlinkBridgeNode(Node):
                                       expo=cfg['thrust_expo'])
             self.core = BridgeCore(BridgeParams(
                 autopilot=cfg['autopilot'], input_timeout_s=cfg['input_timeout_s'],
-                link_timeout_s=cfg['link_timeout_s'], stream_rate_hz=cfg['stream_rate_hz'],
+                link_timeout_s=cfg['link_timeout_s'],
+                max_stream_rate_hz=cfg['max_stream_rate_hz'], stream_burst=cfg['stream_burst'],
+                fresh_period_s=cfg['fresh_period_s'],
                 offboard_warmup_s=cfg['offboard_warmup_s'],
                 target_component=cfg['target_component'], thrust=calib))
         except ValueError as exc:
