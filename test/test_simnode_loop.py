@@ -15,6 +15,7 @@ from deck_simulator.node import (
     AutopilotEmulation,
     AutopilotParams,
     SimulationLoop,
+    TickSchedule,
     body_rates,
     outcome_json,
     parse_mavlink_url,
@@ -312,3 +313,62 @@ def test_step_cost_is_small():
     per_substep_us = s / (4 * n) * 1e6
     print(f'SimulationLoop: {per_substep_us:.1f} us per 1/400 s sub-step')
     assert per_substep_us < 250.0                                   # real time needs < 2500
+
+
+# --- TickSchedule: absolute deadlines ------------------------------------------------------
+
+def run_schedule(sched, clock, work, n):
+    """Drive ``n`` ticks the way the node's thread does: sleep to the deadline (the fake clock
+    jumps there), tick, then "work" for work(k) seconds. Returns the deadlines."""
+    deadlines = []
+    for k in range(n):
+        wait = sched.wait_s(clock[0])
+        if wait > 0.0:
+            clock[0] += wait
+        deadlines.append(sched.tick(clock[0]))
+        clock[0] += work(k)
+    return deadlines
+
+
+def test_schedule_never_drifts_whatever_the_work_takes():
+    rng = random.Random(3)
+    clock = [100.0]
+    sched = TickSchedule(0.01, 0.1, clock[0])
+    deadlines = run_schedule(sched, clock, lambda k: rng.uniform(0.0, 0.009), 10_000)
+    # tick k is due at start + k P exactly (the old loop slept P *after* the work: it drifted
+    # by the work time every tick, i.e. by ~45 s here)
+    assert all(d == pytest.approx(100.0 + k * 0.01, abs=1e-9) for k, d in enumerate(deadlines))
+    assert sched.next_s == pytest.approx(100.0 + 10_000 * 0.01, abs=1e-9)
+    assert sched.late == sched.overruns == sched.ticks_dropped == 0
+    assert sched.ticks == 10_000
+
+
+def test_schedule_catches_up_a_late_tick_without_sleeping():
+    clock = [0.0]
+    sched = TickSchedule(0.01, 0.1, clock[0])
+    # tick 5 takes 35 ms (a preemption): ticks 6-8 are already due, run back to back, and the
+    # world still advances by exactly one period per deadline (no sim time lost)
+    deadlines = run_schedule(sched, clock, lambda k: 0.035 if k == 5 else 0.001, 20)
+    assert deadlines == pytest.approx([k * 0.01 for k in range(20)], abs=1e-12)
+    assert sched.late == 3            # ticks 6, 7 and 8 ran > 2 ms after their deadlines
+    assert sched.overruns == 0
+    assert sched.wait_s(clock[0]) > 0.0      # back on schedule
+
+
+def test_schedule_gives_up_a_stall_longer_than_max_lag():
+    clock = [0.0]
+    sched = TickSchedule(0.01, 0.1, clock[0])
+    deadlines = run_schedule(sched, clock, lambda k: 0.5 if k == 2 else 0.0, 6)
+    # tick 3 runs 0.49 s late: the 49 other deadlines passed meanwhile are dropped and the
+    # schedule re-anchors at the tick
+    assert deadlines[:3] == pytest.approx([0.0, 0.01, 0.02])
+    assert deadlines[3] == pytest.approx(0.52) and deadlines[4] == pytest.approx(0.53)
+    assert sched.overruns == 1 and sched.ticks_dropped == 49
+
+
+@pytest.mark.parametrize('period, lag, needle', [(0.0, 0.1, 'period_s'),
+                                                 (math.nan, 0.1, 'period_s'),
+                                                 (0.01, 0.005, 'max_lag_s')])
+def test_schedule_rejects_bad_configuration(period, lag, needle):
+    with pytest.raises(ValueError, match=needle):
+        TickSchedule(period, lag, 0.0)

@@ -1,9 +1,14 @@
 """ROS 2 node ``deck_simulator``: the simulated world on the wall clock, emulating the hardware.
 
 The world (:class:`deck_simulator.world.World`, paper (1)-(4) and Tables 2-3) runs in its own
-thread, paced by the wall clock: every ``tick_s`` it advances by the elapsed wall time ×
-``realtime_factor`` in sub-steps of ``1 / physics_rate_hz``. Towards the rest of the graph it
-looks like the real hardware over the same wires:
+thread on an absolute wall-clock schedule (:class:`TickSchedule`): tick k is due at
+``start + k · tick_s``; the thread sleeps until that deadline, then advances the world by
+exactly ``tick_s × realtime_factor`` in sub-steps of ``1 / physics_rate_hz``. The schedule
+never drifts (``next += tick_s``, not ``now + tick_s``); a late tick is caught up by stepping
+the next ticks at once; only a stall longer than ``MAX_TICK_WALL_S`` is given up (the sim then
+slows down instead). Telemetry due at a tick's start goes out right at its deadline, so the
+emulated autopilot streams ATTITUDE/HIGHRES_IMU at a steady 100 Hz like a real Pixhawk.
+Towards the rest of the graph it looks like the real hardware over the same wires:
 
 * the Pixhawk: a PX4-like MAVLink endpoint (:class:`deck_simulator.px4_emulator.Px4Emulator`)
   on UDP, streaming HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED, DISTANCE_SENSOR, HIGHRES_IMU and
@@ -30,6 +35,7 @@ import json
 import math
 import re
 import socket
+import sys
 import threading
 import time
 
@@ -61,6 +67,9 @@ from deck_simulator.world import Truth, World
 NOT_LANDING_MODES = frozenset({'IDLE', 'HOLD', 'TAKEOFF'})
 AUTOPILOT_CONTROL_HZ = 100.0     # PX4's position/velocity loop rate stand-in
 MAX_TICK_WALL_S = 0.1            # a longer stall is not caught up (the sim slows down instead)
+#: a GIL switch interval of 1 ms (CPython's default is 5 ms) so the world thread wakes on time
+#: even while an executor thread of this process runs Python code
+SWITCH_INTERVAL_S = 0.001
 
 _URL_RE = re.compile(r'^(udpin|udpout|udp):([^:]+):(\d{1,5})$')
 
@@ -455,6 +464,65 @@ def outcome_json(outcome: dict) -> str:
     return json.dumps(outcome, allow_nan=False, sort_keys=True)
 
 
+# --- the wall-clock schedule (pure) ---------------------------------------------------------
+
+class TickSchedule:
+    """Absolute fixed-rate deadlines on a monotonic clock (pure: the caller passes ``now_s``).
+
+    Tick k is due at ``anchor + k · period_s``. :meth:`wait_s` says how long to sleep until the
+    next deadline (≤ 0: due now); :meth:`tick` accounts one tick run at ``now_s`` and returns
+    its deadline. Deadlines advance by ``period_s`` whatever the work took, so there is no
+    drift and a late tick is followed by catch-up ticks with no sleep in between. If a tick is
+    run more than ``max_lag_s`` after its deadline (a stall), the backlog is dropped, the
+    schedule is re-anchored at ``now_s`` and the stall is counted in ``overruns`` with the
+    dropped ticks in ``ticks_dropped``; ``late`` counts ticks run more than ``late_s`` after
+    their deadline (jitter diagnostics).
+    """
+
+    __slots__ = ('_next_s', 'late', 'late_s', 'max_lag_s', 'overruns', 'period_s', 'ticks',
+                 'ticks_dropped')
+
+    def __init__(self, period_s: float, max_lag_s: float, now_s: float,
+                 late_s: float = 0.002) -> None:
+        if not (math.isfinite(period_s) and period_s > 0.0):
+            raise ValueError(f'TickSchedule.period_s must be finite and > 0, got {period_s!r}')
+        if not (math.isfinite(max_lag_s) and max_lag_s >= period_s):
+            raise ValueError(f'TickSchedule.max_lag_s must be finite and >= period_s, '
+                             f'got {max_lag_s!r}')
+        self.period_s = period_s
+        self.max_lag_s = max_lag_s
+        self.late_s = late_s
+        self._next_s = now_s
+        self.ticks = 0
+        self.late = 0
+        self.overruns = 0
+        self.ticks_dropped = 0
+
+    @property
+    def next_s(self) -> float:
+        """Deadline of the next tick."""
+        return self._next_s
+
+    def wait_s(self, now_s: float) -> float:
+        """Seconds until the next deadline (≤ 0 when it is due)."""
+        return self._next_s - now_s
+
+    def tick(self, now_s: float) -> float:
+        """Account the tick run at ``now_s`` (call it when :meth:`wait_s` ≤ 0); returns the
+        deadline the tick stands for (``now_s`` itself after a stall)."""
+        lag = now_s - self._next_s
+        if lag > self.max_lag_s:
+            self.overruns += 1
+            self.ticks_dropped += int(lag / self.period_s + 1e-9)  # due, not run
+            self._next_s = now_s
+        elif lag > self.late_s:
+            self.late += 1
+        deadline = self._next_s
+        self._next_s = deadline + self.period_s
+        self.ticks += 1
+        return deadline
+
+
 # --- the ROS adapter -----------------------------------------------------------------------
 
 def _is_ipv4(value: str) -> bool:
@@ -492,7 +560,9 @@ PARAMS = [
               'at 400 Hz)', lambda v: 400.0 <= v <= 4000.0, 'must be in [400, 4000]'),
     ParamSpec('truth_rate_hz', 50.0, 'rate of sim/truth/vehicle and sim/truth/apron',
               lambda v: 0.0 < v <= 400.0, 'must be in (0, 400]'),
-    ParamSpec('tick_s', 0.01, 'wall-clock period of the simulation thread',
+    ParamSpec('tick_s', 0.01, 'wall-clock period of the simulation thread (absolute '
+              'deadlines); keep it a divisor of the sensor periods (10 ms: IMU 100 Hz, camera '
+              'and lidar 50 Hz) so telemetry leaves at a deadline',
               lambda v: 0.001 <= v <= 0.05, 'must be in [0.001, 0.05]'),
     one_of('offboard_loss_action', 'land', ('land', 'hold'),
            'emulated PX4 COM_OBL_RC_ACT after offboard setpoints stop for 1 s'),
@@ -553,8 +623,7 @@ class DeckSimulatorNode(Node):
 
         self.sim = SimulationLoop(scenario, p['seed'], self.emulator, pixy_send,
                                   p['physics_rate_hz'], p['truth_rate_hz'])
-        self.ticks = 0
-        self.overruns = 0
+        self.schedule: TickSchedule | None = None
         self.thread_errors = 0
         self._outcome_msg: str | None = None
         self._warned: dict[str, int] = {}
@@ -588,32 +657,51 @@ class DeckSimulatorNode(Node):
 
     # --- the wall-clock thread -----------------------------------------------------------
 
+    @property
+    def ticks(self) -> int:
+        """Ticks run by the world thread."""
+        return self.schedule.ticks if self.schedule is not None else 0
+
+    @property
+    def overruns(self) -> int:
+        """Stalls longer than ``MAX_TICK_WALL_S`` (their backlog was not caught up)."""
+        return self.schedule.overruns if self.schedule is not None else 0
+
     def _run(self) -> None:
-        rtf, tick = self.cfg['realtime_factor'], self.cfg['tick_s']
-        last = time.monotonic()
-        while not self._stop.wait(tick):
-            now = time.monotonic()
-            elapsed = now - last
-            last = now
-            if elapsed > MAX_TICK_WALL_S:
-                self.overruns += 1
-                elapsed = MAX_TICK_WALL_S
+        """The world thread: tick k at ``start + k · tick_s`` (absolute, see TickSchedule);
+        each tick advances the world by ``tick_s × realtime_factor``."""
+        rtf, period = self.cfg['realtime_factor'], self.cfg['tick_s']
+        sched = TickSchedule(period, MAX_TICK_WALL_S, time.monotonic())
+        self.schedule = sched
+        sim_dt = period * rtf
+        stop = self._stop
+        while True:
+            delay = sched.wait_s(time.monotonic())
+            if delay > 0.0:
+                if stop.wait(delay):
+                    break
+            elif stop.is_set():
+                break
+            deadline = sched.tick(time.monotonic())
             try:
-                samples, outcome = self.sim.advance(elapsed * rtf)
-                self._publish(samples, outcome, rtf)
+                t0_sim = self.sim.world.t_s
+                samples, outcome = self.sim.advance(sim_dt)
+                self._publish(samples, outcome, rtf, deadline, t0_sim)
             except Exception as exc:  # never let one bad tick kill the world thread
-                if self._stop.is_set() or not self.context.ok():
+                if stop.is_set() or not self.context.ok():
                     break
                 self.thread_errors += 1
-                self.get_logger().error(f'simulation tick failed: {exc!r}')
-            self.ticks += 1
+                self.get_logger().error(f'simulation tick failed: {exc!r}',
+                                        throttle_duration_sec=2.0)
 
-    def _publish(self, samples: list[Truth], outcome: dict | None, rtf: float) -> None:
+    def _publish(self, samples: list[Truth], outcome: dict | None, rtf: float,
+                 deadline_s: float, t0_sim_s: float) -> None:
         if samples:
-            now_s = self.get_clock().now().nanoseconds * 1e-9
-            t_end = self.sim.world.t_s
+            # a sample at sim time t stands for the wall time deadline + (t − t0) / rtf
+            # (monotonic), expressed on the node clock
+            offset = self.get_clock().now().nanoseconds * 1e-9 - time.monotonic()
             for tr in samples:
-                stamp_s = now_s - (t_end - tr.t_s) / rtf   # the sample's wall time
+                stamp_s = offset + deadline_s + (tr.t_s - t0_sim_s) / rtf
                 self.pub_vehicle.publish(self._vehicle_msg(tr, stamp_s))
                 self.pub_apron.publish(self._apron_msg(tr, stamp_s))
         if outcome is not None:
@@ -679,6 +767,9 @@ class DeckSimulatorNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``deck_simulator_node``."""
+    # process-wide, so only here: the world thread must get the GIL back within ~1 ms of its
+    # deadline while the executor thread runs Python code
+    sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
     return run_node(DeckSimulatorNode, args)
 
 
@@ -687,5 +778,5 @@ if __name__ == '__main__':  # pragma: no cover
 
 
 __all__ = ['PARAMS', 'AutopilotEmulation', 'AutopilotParams', 'DeckSimulatorNode',
-           'SimulationLoop', 'UdpLink', 'body_rates', 'main', 'make_mavlink_link',
+           'SimulationLoop', 'TickSchedule', 'UdpLink', 'body_rates', 'main', 'make_mavlink_link',
            'outcome_json', 'parse_mavlink_url']
