@@ -203,12 +203,28 @@ class _LinkFault(FaultSpec):
     """Shared failsafe parameters of the faults that cut the command link."""
 
     loss_timeout_s: float = 1.0      # PX4 COM_OF_LOSS_T: no command for this long → failsafe
-    hold_s: float = 5.0              # failsafe hold, then land
+    hold_s: float = 5.0              # failsafe hold, then the action below
+    action: str = 'land'             # COM_OBL_RC_ACT after the hold: 'land' here | 'return'
+    land_speed_mps: float = 0.7      # MPC_LAND_SPEED (PX4 default 0.7)
+    min_alt_m: float = 0.0           # hold/return climb to at least this world altitude first
+    climb_speed_mps: float = 0.5     # ... at this rate (MPC_Z_VEL_MAX_UP-like, kept gentle)
+    return_speed_mps: float = 1.0    # 'return': horizontal speed toward home (RTL)
+    reengage_offboard: bool = True   # a command arriving ends the failsafe (the bridge asks
+    #                                  for OFFBOARD again); False: PX4 stays in its failsafe
 
     def _check(self) -> None:
         _req(_finite(self.loss_timeout_s) and self.loss_timeout_s > 0, 'loss_timeout_s',
              'must be > 0', self.loss_timeout_s)
         _req(_finite(self.hold_s) and self.hold_s >= 0, 'hold_s', 'must be >= 0', self.hold_s)
+        _req(self.action in ('land', 'return'), 'action', "must be 'land' or 'return'",
+             self.action)
+        for name in ('land_speed_mps', 'climb_speed_mps', 'return_speed_mps'):
+            v = getattr(self, name)
+            _req(_finite(v) and 0 < v <= 5.0, name, 'must be in (0, 5] m/s', v)
+        _req(_finite(self.min_alt_m) and self.min_alt_m >= 0, 'min_alt_m', 'must be >= 0',
+             self.min_alt_m)
+        _req(isinstance(self.reengage_offboard, bool), 'reengage_offboard',
+             'must be true or false', self.reengage_offboard)
 
 
 @dataclass(frozen=True, slots=True)
@@ -261,13 +277,18 @@ FAULT_TYPES: dict[str, type[FaultSpec]] = {c.type: c for c in (
     MavlinkLoss, MavlinkLatency, MavlinkLinkLoss, NodeKill)}
 LINK_TYPES = ('mavlink_loss', 'mavlink_latency', 'mavlink_link_loss', 'node_kill')
 _TUPLE_FIELDS = {'position_m': 3, 'wind_mps': 3}
-_STR_FIELDS = {'mode', 'direction', 'node'}
+_STR_FIELDS = {'mode', 'direction', 'node', 'action'}
+_BOOL_FIELDS = {'reengage_offboard'}
 _OPTIONAL = {'trigger_height_m', 'near_beacon_m', 'bearing_rad', 'position_m'}
 
 
 def _value(key: str, value: Any, where: str) -> Any:
     if value is None and key in _OPTIONAL:
         return None
+    if key in _BOOL_FIELDS:
+        if not isinstance(value, bool):
+            raise ValueError(f'{where} must be true or false, got {value!r}')
+        return value
     if key in _STR_FIELDS:
         if not isinstance(value, str):
             raise ValueError(f'{where} must be a string, got {value!r}')
@@ -404,9 +425,11 @@ class FaultSet:
         self.has_lidar = bool(self.lidar_drop or self.lidar_spikes)
         self.has_link = bool(self.link_cut or self.link_loss or self.link_latency)
         link = self.link_cut + self.link_loss + self.link_latency
-        # failsafe parameters: the first link fault's (they normally agree)
-        self.loss_timeout_s = link[0].spec.loss_timeout_s if link else 1.0   # type: ignore
-        self.hold_s = link[0].spec.hold_s if link else 5.0                   # type: ignore
+        # failsafe parameters (the emulated autopilot's): the first link fault's
+        self.link_spec: _LinkFault = (link[0].spec if link   # type: ignore[assignment]
+                                      else MavlinkLinkLoss())
+        self.loss_timeout_s = self.link_spec.loss_timeout_s
+        self.hold_s = self.link_spec.hold_s
 
     @staticmethod
     def _bursts(a: _Active, s: CameraDropout) -> tuple[tuple[float, float], ...]:

@@ -45,11 +45,12 @@ from deck_simulator.sensors import (
 from deck_simulator.vehicle import Vehicle
 
 LIFTOFF_MARGIN_MPS2 = 0.2
-# offboard-loss failsafe (command_link): PX4-like hold, then land at MPC_LAND_SPEED
+# offboard-loss failsafe (command_link): PX4-like hold, then land or return (the speeds,
+# the climb and the action are the link fault's keys, see faults._LinkFault)
 FAILSAFE_PERIOD_S = 0.01
-FAILSAFE_LAND_SPEED_MPS = 0.7
 FAILSAFE_MAX_TILT_RAD = 0.3
 FAILSAFE_BRAKED_MPS = 0.3      # horizontal speed below which the hold point is fixed
+FAILSAFE_HOME_RADIUS_M = 0.3   # 'return': at home (and braked) → land
 GUST_UPDATE_S = 0.01 - 1e-9   # gusts (τ ~ s) are held over 10 ms
 
 
@@ -181,7 +182,9 @@ class World:
         cx0, cy0, _, _, _ = self.deck.state(0.0)
         self.faults: FaultSet | None = (FaultSet(sc.faults, seed, (cx0, cy0), self.deck_mean_m)
                                         if sc.faults else None)
-        self.failsafe: str | None = None       # None | 'hold' | 'land' (command_link only)
+        # None | 'hold' | 'return' | 'land' (command_link only)
+        self.failsafe: str | None = None
+        self.home_m: tuple[float, float] | None = None   # where offboard was engaged (RTL)
         self.link_stats: dict[str, int] = {'sent': 0, 'lost': 0, 'delayed': 0, 'failsafes': 0}
         self._link_used = False
         self._last_rx_t = 0.0
@@ -215,10 +218,13 @@ class World:
         ``t_s`` may be lost (False; the vehicle keeps the previous command) or queued and
         applied ``latency_s`` later (FIFO, never reordered). When no command has been applied
         for ``loss_timeout_s`` (PX4 COM_OF_LOSS_T, 1 s) the world's autopilot takes over
-        (:attr:`failsafe` = ``'hold'``: brake to rest, then hold that position and the altitude
-        and heading of the moment of loss with a simple controller on truth; after ``hold_s``
-        more, ``'land'``: descend at 0.7 m/s, zero thrust once on a surface). The next command
-        that arrives ends the failsafe (the bridge re-engages offboard). Monitoring starts with
+        (:attr:`failsafe` = ``'hold'``: brake to rest, then hold that position and heading at
+        the altitude of the moment of loss, raised to ``min_alt_m``; after ``hold_s`` more the
+        fault's ``action``: ``'land'`` descends at ``land_speed_mps`` (0.7 m/s), zero thrust
+        once on a surface; ``'return'`` flies home — where the first command was sent — at
+        that altitude, then lands there). With ``reengage_offboard`` (default) the next
+        command that arrives ends the failsafe (the bridge re-engages offboard); without it
+        the autopilot stays in its failsafe, as PX4 does. Monitoring starts with
         the first accepted call. A non-finite value or a ``t_s`` older than the previous call's
         is rejected (``rejected['nan']`` / ``['out_of_order']``, False).
         """
@@ -234,6 +240,7 @@ class World:
         if not self._link_used:
             self._link_used = True
             self._last_rx_t = self._last_tx_t = t_s
+            self.home_m = (self.vehicle.x, self.vehicle.y)
         elif t_s < self._last_tx_t:
             self.rejected['out_of_order'] += 1
             return False
@@ -252,8 +259,11 @@ class World:
         return True
 
     def _deliver(self, t_s: float, cmd: tuple[float, float, float, float]) -> None:
-        self.failsafe = None
         self._last_rx_t = t_s
+        if self.failsafe is not None:
+            if not self.faults.link_spec.reengage_offboard:   # type: ignore[union-attr]
+                return   # PX4 stays in its failsafe mode until someone switches it back
+            self.failsafe = None
         self.set_command(*cmd)
 
     def _link_tick(self, t: float) -> None:
@@ -263,28 +273,44 @@ class World:
             due, cmd = q.popleft()
             self._deliver(due, cmd)
         fs = self.faults
+        spec = fs.link_spec   # type: ignore[union-attr]
         if self.failsafe is None:
-            if t - self._last_rx_t <= fs.loss_timeout_s:   # type: ignore[union-attr]
+            if t - self._last_rx_t <= spec.loss_timeout_s:
                 return
             v = self.vehicle
             self.failsafe = 'hold'
             self.link_stats['failsafes'] += 1
             self._fs_t0 = t
             self._fs_next = t
-            self._fs_ref = (v.x, v.y, v.z, v.yaw)
+            # hold the altitude of the moment of loss, or climb to min_alt_m first
+            self._fs_ref = (v.x, v.y, max(v.z, spec.min_alt_m), v.yaw)
             self._fs_braked = False
-        if self.failsafe == 'hold' and t - self._fs_t0 >= fs.hold_s:   # type: ignore
-            self.failsafe = 'land'
+        if self.failsafe == 'hold' and t - self._fs_t0 >= spec.hold_s:
+            self.failsafe = 'return' if spec.action == 'return' else 'land'
+        if self.failsafe == 'return' and self._fs_braked:
+            v = self.vehicle
+            hx, hy = self.home_m if self.home_m is not None else (v.x, v.y)
+            if (math.hypot(v.x - hx, v.y - hy) <= FAILSAFE_HOME_RADIUS_M
+                    and v.vx * v.vx + v.vy * v.vy <= FAILSAFE_BRAKED_MPS ** 2
+                    and abs(v.z - self._fs_ref[2]) < 0.3):
+                self.failsafe = 'land'
         if t >= self._fs_next - 1e-12:
             self._fs_next = t + FAILSAFE_PERIOD_S
             self._failsafe_command()
 
     def _failsafe_command(self) -> None:
-        """PX4-like position hold / land on truth: PD on position → tilt, (3) inverted for
-        thrust u_z = m (g + a_z) / (γ cφ cθ) with the true γ of (4)."""
+        """PX4-like position hold / return / land on truth: PD on position → tilt, (3)
+        inverted for thrust u_z = m (g + a_z) / (γ cφ cθ) with the true γ of (4).
+
+        hold: brake, hold that point and the altitude of the moment of loss raised to
+        ``min_alt_m`` (climbing at ``climb_speed_mps``); return (RTL): the hold point slews to
+        home (where offboard was engaged) at ``return_speed_mps`` at that altitude; land:
+        descend at ``land_speed_mps`` over the held point, zero thrust once resting.
+        """
         v = self.vehicle
         p = self.params
         g = p.gravity_mps2
+        spec = self.faults.link_spec   # type: ignore[union-attr]
         x0, y0, z0, yaw0 = self._fs_ref
         if not self._fs_braked:
             # PX4 Hold: brake first, then hold where the vehicle came to rest
@@ -292,6 +318,14 @@ class World:
                 x0, y0 = v.x, v.y
             else:
                 self._fs_braked = True
+            self._fs_ref = (x0, y0, z0, yaw0)
+        elif self.failsafe == 'return' and self.home_m is not None:
+            ex, ey = self.home_m[0] - x0, self.home_m[1] - y0
+            n = math.hypot(ex, ey)
+            step = spec.return_speed_mps * FAILSAFE_PERIOD_S
+            if n > step:
+                ex, ey = ex * step / n, ey * step / n
+            x0, y0 = x0 + ex, y0 + ey
             self._fs_ref = (x0, y0, z0, yaw0)
         ax = 1.0 * (x0 - v.x) - 1.8 * v.vx
         ay = 1.0 * (y0 - v.y) - 1.8 * v.vy
@@ -302,10 +336,12 @@ class World:
         fwd, left = world_to_body_xy(ax, ay, v.yaw)
         pitch = math.atan2(fwd, g)
         roll = -math.atan2(left, g)
-        if self.failsafe == 'hold':
-            az = 2.0 * (z0 - v.z) - 2.5 * v.vz
+        if self.failsafe != 'land':
+            # PD on altitude; the error is capped so that a climb runs at climb_speed_mps
+            ez_max = spec.climb_speed_mps / 0.8
+            az = 2.0 * max(-ez_max, min(ez_max, z0 - v.z)) - 2.5 * v.vz
         else:
-            az = 2.0 * (-FAILSAFE_LAND_SPEED_MPS - v.vz)
+            az = 2.0 * (-spec.land_speed_mps - v.vz)
         az = max(-0.5 * g, min(0.5 * g, az))
         cx, cy, ztop, _, _ = self._deck_now
         over = abs(v.x - cx) <= self.deck.half_x and abs(v.y - cy) <= self.deck.half_y

@@ -72,6 +72,12 @@ class RunResult:
     final_mode: str = ''
     reason: str = ''
     sim_time_s: float = 0.0
+    # fault campaigns (docs/failsafe.md): 'deck' | 'fallback' | 'hold' | 'crash' | 'unstable'
+    outcome: str = ''
+    failsafes: int = 0              # times the emulated autopilot's offboard-loss failsafe engaged
+    failsafe_mode: str = ''         # its mode at the end of the run ('' = offboard)
+    final_height_m: float = math.nan   # true height above the surface below at the end
+    final_speed_mps: float = math.nan  # true speed at the end (3-D)
     trace: dict[str, list[float]] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
@@ -201,9 +207,38 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
         result.fallback = outcome.fallback
         result.success = outcome.landed_on_deck and not outcome.crash
         result.reason = outcome.reason
+    truth = world.truth()
+    result.failsafes = world.link_stats['failsafes']
+    result.failsafe_mode = world.failsafe or ''
+    result.final_height_m = truth.height_above_surface_m
+    result.final_speed_mps = math.hypot(*truth.velocity_mps)
+    result.outcome = classify(result, truth.roll_rad, truth.pitch_rad)
     if config.record:
         result.trace = trace
     return result
+
+
+HOLD_MAX_SPEED_MPS = 0.5     # 'hold': airborne at the end and slower than this ...
+HOLD_MIN_HEIGHT_M = 0.3      # ... at least this high above the surface below ...
+HOLD_MAX_TILT_RAD = 0.35     # ... and not tilted more than this
+
+
+def classify(result: RunResult, roll_rad: float = 0.0, pitch_rad: float = 0.0) -> str:
+    """Safety class of a finished run (docs/failsafe.md): ``deck`` (landed on the pad),
+    ``fallback`` (a deliberate landing on the ground, not a crash), ``hold`` (no touchdown,
+    airborne and stable at the end), ``crash`` (edge strike, too fast or too tilted) or
+    ``unstable`` (no touchdown but not a stable hover: counted as unsafe)."""
+    if result.crash:
+        return 'crash'
+    if result.contact_kind == 'pad':
+        return 'deck'
+    if result.contact_kind == 'ground':
+        return 'fallback'
+    tilt = math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
+    if (result.final_speed_mps <= HOLD_MAX_SPEED_MPS and tilt <= HOLD_MAX_TILT_RAD
+            and result.final_height_m >= HOLD_MIN_HEIGHT_M):
+        return 'hold'
+    return 'unstable'
 
 
 def _record(trace, t, pos, truth, vert, apron, out, alt_out, mode_index) -> None:
