@@ -29,5 +29,9 @@ test: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 
+# Deliberate only (never run by tests): fly the reference landing and rewrite the golden bag.
+golden: setup
+	$(PY) -m deckland.golden record test/fixtures/golden_paper
+
 clean:
 	rm -rf $(VENV) runs build install log .pytest_cache
