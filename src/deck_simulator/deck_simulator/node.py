@@ -650,6 +650,7 @@ class DeckSimulatorNode(Node):
         counts.update({f'sim.{k}': v for k, v in self.sim.rejected.items()})
         counts['pixy.blocks_dropped'] = self.sim.counters['pixy_blocks_dropped']
         counts['pixy.send_errors'] = self.sim.counters['pixy_send_errors']
+        counts['schedule.overruns'] = self.overruns     # stalls > MAX_TICK_WALL_S, not caught up
         grown = {k: v for k, v in counts.items() if v > self._warned.get(k, 0)}
         if grown:
             self._warned.update(grown)
