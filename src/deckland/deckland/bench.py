@@ -87,8 +87,15 @@ def summarize_ms(values_s: Sequence[float]) -> dict[str, float | int | None]:
 
 def loop_jitter(arrivals_s: Sequence[float], period_s: float = LOOP_PERIOD_S,
                 max_gap_s: float = MAX_GAP_S) -> tuple[list[float], int]:
-    """``|Δt − period|`` of consecutive arrivals (sorted first) and the number of gaps longer
-    than ``max_gap_s``, which are stream interruptions and not counted as jitter."""
+    """Lateness of the setpoint stream against the control period, and the stream gaps.
+
+    For consecutive arrivals (sorted first) the jitter sample is ``max(0, Δt − period)``: how
+    late the next setpoint came relative to the 100 Hz schedule the autopilot expects. The
+    event-driven chain sends a second setpoint of the same instant when a camera frame lands
+    between IMU ticks (0.5–2 ms after the IMU-triggered one); such an *early* extra setpoint is
+    not jitter, but with ``|Δt − period|`` it would count as ~9 ms. Gaps longer than
+    ``max_gap_s`` are stream interruptions, counted apart and not as jitter.
+    """
     ts = sorted(arrivals_s)
     out: list[float] = []
     gaps = 0
@@ -97,7 +104,7 @@ def loop_jitter(arrivals_s: Sequence[float], period_s: float = LOOP_PERIOD_S,
         if dt > max_gap_s:
             gaps += 1
         else:
-            out.append(abs(dt - period_s))
+            out.append(dt - period_s if dt > period_s else 0.0)
     return out, gaps
 
 
