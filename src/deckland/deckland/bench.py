@@ -326,7 +326,7 @@ def format_table(report: dict) -> str:
             ('stack_latency_ms', 'stack latency (pixy pub->MAVLink) ms',
              _fmt_target(t['stack_latency_p99_ms'])),
             ('data_age_ms', 'camera data age per setpoint ms', ''),
-            ('loop_jitter_ms', 'loop jitter |dt-10ms| ms', _fmt_target(t['loop_jitter_p99_ms']))):
+            ('loop_jitter_ms', 'loop jitter (lateness) ms', _fmt_target(t['loop_jitter_p99_ms']))):
         v = report[key]
         lines.append(f'{label:<34}{f(v["p50"]):>9}{f(v["p99"]):>9}   {tgt}')
         if key == 'stack_latency_ms':
