@@ -35,6 +35,7 @@ import math
 import sys
 
 from apron_estimator.types import APRON_STATE_LAYOUT, ApronState
+from deckland_common.checks import stamp_verdict
 from deckland_common.frames import quaternion_to_euler
 from deckland_common.params import ParameterError, ParamSpec, in_range, one_of, positive
 from deckland_common.ros_node import (
@@ -184,17 +185,10 @@ class DobAltitudeNode(Node):
 
     def _stamp_ok(self, stamp_s: float, last_s: float | None, what: str) -> bool:
         """Finite, not older than the last accepted one, not stale, not in the future."""
-        now = self._now_s()
-        if not math.isfinite(stamp_s):
-            self._reject('non_finite', what)
-        elif last_s is not None and stamp_s < last_s:
-            self._reject('out_of_order', what)
-        elif now - stamp_s > self._timeout_s:
-            self._reject('stale_stamp', what)
-        elif stamp_s - now > self._timeout_s:
-            self._reject('future_stamp', what)
-        else:
+        reason = stamp_verdict(stamp_s, last_s, self._now_s(), self._timeout_s)
+        if reason is None:
             return True
+        self._reject(reason, what)
         return False
 
     # --- subscriptions ---------------------------------------------------------------------
