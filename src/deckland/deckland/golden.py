@@ -121,10 +121,10 @@ CORE_TOLERANCES = Tolerances(
 #: job).
 _INF = math.inf
 NODE_TOLERANCES = Tolerances(
-    apron_pos_m=(5e-2, _INF), apron_vel_mps=(0.2, _INF), height_m=(5e-2, _INF),
+    apron_pos_m=(0.1, _INF), apron_vel_mps=(0.3, _INF), height_m=(5e-2, _INF),
     vspeed_mps=(0.3, _INF), ref_z_m=(5e-2, _INF), ref_z_dot_mps=(0.1, _INF),
     ref_xy_m=(0.15, _INF), attitude_rad=(8e-2, _INF), thrust_n=(8.0, _INF),
-    observer=(4.0, _INF), min_matched=0.6, stamp_s=0.01, quantile=0.9)
+    observer=(4.0, _INF), min_matched=0.4, stamp_s=0.02, quantile=0.9)
 
 
 # ================================================================= reading (pure, rosbags)
