@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 import ipaddress
 import json
 import math
+import random
 import re
 import socket
 import sys
@@ -161,6 +162,144 @@ def make_mavlink_link(url: str) -> UdpLink:
         return UdpLink((host, port), None)
     bind_host = '127.0.0.1' if ipaddress.IPv4Address(host).is_loopback else '0.0.0.0'
     return UdpLink((bind_host, 0), (host, port))
+
+
+# --- MAVLink link faults on the wire ------------------------------------------------------
+
+#: scenario fault types the graph applies on the MAVLink wire (``node_kill`` is a real SIGKILL
+#: of a node process by ``deckland up``, so it is not applied here a second time)
+WIRE_FAULT_TYPES = ('mavlink_link_loss', 'mavlink_loss', 'mavlink_latency')
+DOWNLINK_MODES = ('none', 'cut', 'all')
+
+
+class ImpairedLink:
+    """A lossy radio/serial link between the bridge and the emulated autopilot (no rclpy).
+
+    Wraps the emulator's byte transport (same ``send``/``receive``/``set_peer``/``close``
+    interface) and applies the scenario's MAVLink faults datagram by datagram at the
+    simulator's time ``world.t_s`` (the fault windows of :class:`deck_simulator.faults.FaultSet`,
+    world time; a ``trigger_height_m`` window is opened by the world itself):
+
+    * ``mavlink_link_loss``: every datagram in the window is dropped (``*_cut``); the
+      emulator's own COM_OF_LOSS_T timeout then triggers its offboard-loss failsafe;
+    * ``mavlink_loss``: each datagram is dropped with ``probability`` (``*_lost``);
+    * ``mavlink_latency``: each datagram is held back ``latency_s`` (``*_delayed``), FIFO and
+      never reordered (a datagram behind a delayed one waits for it, as in
+      :meth:`World.command_link`).
+
+    Uplink (bridge → autopilot: setpoints, commands, heartbeats) is always impaired.
+    ``downlink`` says what happens to telemetry (autopilot → bridge): ``'none'`` untouched,
+    ``'cut'`` (default) only the link-loss cut (a dead radio is dead both ways), ``'all'`` loss
+    and latency as well. Random draws come from ``random.Random(f'{seed}:mavlink_wire:up')``
+    and ``...:down`` (one draw per datagram and active loss fault), so they never shift the
+    world's streams. Held datagrams are released on the next ``send``/``receive`` call at or
+    after their due time (the emulator polls at 100 Hz: ≤ 10 ms quantisation).
+    """
+
+    def __init__(self, inner, world: World, seed: int, downlink: str = 'cut') -> None:
+        if downlink not in DOWNLINK_MODES:
+            raise ValueError(f'ImpairedLink.downlink must be one of {DOWNLINK_MODES}, '
+                             f'got {downlink!r}')
+        fs = world.faults
+        if fs is None:
+            raise ValueError('ImpairedLink needs a world with faults')
+        self.inner = inner
+        self.world = world
+        self.downlink = downlink
+        self._cut = [a for a in fs.link_cut if a.name == 'mavlink_link_loss']
+        self._loss = [a for a in fs.link_loss if a.name == 'mavlink_loss']
+        self._lat = [a for a in fs.link_latency if a.name == 'mavlink_latency']
+        self._rng_up = random.Random(f'{seed}:mavlink_wire:up')
+        self._rng_down = random.Random(f'{seed}:mavlink_wire:down')
+        self._rx_queue: list[tuple[float, bytes, object]] = []
+        self._tx_queue: list[tuple[float, bytes]] = []
+        self.counters: dict[str, int] = {
+            'rx': 0, 'rx_cut': 0, 'rx_lost': 0, 'rx_delayed': 0,
+            'tx': 0, 'tx_cut': 0, 'tx_lost': 0, 'tx_delayed': 0}
+
+    @staticmethod
+    def wire_faults(world: World) -> list:
+        """The world's run-time faults this link applies (empty: nothing to wrap)."""
+        fs = world.faults
+        if fs is None:
+            return []
+        return [a for a in fs.all if a.name in WIRE_FAULT_TYPES]
+
+    def _fate(self, t: float, rng: random.Random, cut_only: bool) -> float | str:
+        """'cut' / 'lost' or the delay in seconds (0 = now) of a datagram sent at t."""
+        for a in self._cut:
+            if a.on <= t < a.off:
+                return 'cut'
+        if cut_only:
+            return 0.0
+        for a in self._loss:
+            if a.on <= t < a.off and rng.random() < a.spec.probability:
+                return 'lost'
+        delay = 0.0
+        for a in self._lat:
+            if a.on <= t < a.off and a.spec.latency_s > delay:
+                delay = a.spec.latency_s
+        return delay
+
+    # --- transport interface (as UdpLink / MemoryLink.End) --------------------------------
+
+    @property
+    def local_address(self):
+        return getattr(self.inner, 'local_address', None)
+
+    def _flush_tx(self, t: float) -> None:
+        q = self._tx_queue
+        n = 0
+        while n < len(q) and q[n][0] <= t + 1e-9:
+            self.inner.send(q[n][1])
+            n += 1
+        if n:
+            del q[:n]
+
+    def send(self, data: bytes) -> None:
+        t = self.world.t_s
+        self._flush_tx(t)
+        self.counters['tx'] += 1
+        if self.downlink == 'none':
+            self.inner.send(data)
+            return
+        fate = self._fate(t, self._rng_down, self.downlink == 'cut')
+        if fate == 'cut' or fate == 'lost':
+            self.counters['tx_' + fate] += 1
+            return
+        if fate > 0.0 or self._tx_queue:
+            self.counters['tx_delayed'] += fate > 0.0
+            self._tx_queue.append((t + fate, bytes(data)))
+            return
+        self.inner.send(data)
+
+    def receive(self) -> list[tuple[bytes, object]]:
+        t = self.world.t_s
+        self._flush_tx(t)
+        q = self._rx_queue
+        n = 0
+        while n < len(q) and q[n][0] <= t + 1e-9:
+            n += 1
+        out = [(d, a) for _, d, a in q[:n]]
+        del q[:n]
+        for data, addr in self.inner.receive():
+            self.counters['rx'] += 1
+            fate = self._fate(t, self._rng_up, False)
+            if fate == 'cut' or fate == 'lost':
+                self.counters['rx_' + fate] += 1
+                continue
+            if fate > 0.0 or q:
+                self.counters['rx_delayed'] += fate > 0.0
+                q.append((t + fate, data, addr))
+                continue
+            out.append((data, addr))
+        return out
+
+    def set_peer(self, addr: object) -> None:
+        self.inner.set_peer(addr)
+
+    def close(self) -> None:
+        self.inner.close()
 
 
 # --- autopilot emulation -------------------------------------------------------------------
@@ -293,11 +432,23 @@ class SimulationLoop:
     """
 
     def __init__(self, scenario: Scenario, seed: int, emulator: Px4Emulator, pixy_send,
-                 physics_rate_hz: float = 400.0, truth_rate_hz: float = 50.0) -> None:
+                 physics_rate_hz: float = 400.0, truth_rate_hz: float = 50.0,
+                 link_downlink: str = 'cut') -> None:
         self.scenario = scenario
         self.seed = seed
         self.world = World(scenario, seed, physics_dt_s=1.0 / physics_rate_hz)
         self.emulator = emulator
+        # the scenario's MAVLink faults act on the wire (ImpairedLink); the autopilot's
+        # failsafe settings (COM_OF_LOSS_T, MPC_LAND_SPEED) are the first such fault's keys
+        self.link: ImpairedLink | None = None
+        wire = ImpairedLink.wire_faults(self.world)
+        if wire:
+            spec = wire[0].spec
+            emulator.params = replace(emulator.params,
+                                      offboard_loss_timeout_s=spec.loss_timeout_s,
+                                      land_speed_mps=spec.land_speed_mps)
+            self.link = ImpairedLink(emulator.transport, self.world, seed, link_downlink)
+            emulator.set_transport(self.link)
         self.pixy_send = pixy_send
         self.autopilot = AutopilotEmulation(AutopilotParams.for_scenario(
             scenario, emulator.params.land_speed_mps))
@@ -565,7 +716,12 @@ PARAMS = [
               'and lidar 50 Hz) so telemetry leaves at a deadline',
               lambda v: 0.001 <= v <= 0.05, 'must be in [0.001, 0.05]'),
     one_of('offboard_loss_action', 'land', ('land', 'hold'),
-           'emulated PX4 COM_OBL_RC_ACT after offboard setpoints stop for 1 s'),
+           'emulated PX4 COM_OBL_RC_ACT after offboard setpoints stop for 1 s (COM_OF_LOSS_T; '
+           "a scenario MAVLink fault's loss_timeout_s replaces the 1 s)"),
+    one_of('mavlink_fault_downlink', 'cut', DOWNLINK_MODES,
+           "scenario MAVLink faults on the telemetry (autopilot -> bridge): 'none', 'cut' "
+           "(only the link-loss window, default), 'all' (also loss and latency); the uplink "
+           '(bridge -> autopilot) always gets them all'),
     ParamSpec('map_frame', 'map', 'world frame id (ENU)', lambda v: v.strip() != '',
               'must not be empty'),
     ParamSpec('base_frame', 'base_link', 'vehicle body frame id (FLU)',
@@ -622,7 +778,8 @@ class DeckSimulatorNode(Node):
             sock.sendto(data, pixy_addr)
 
         self.sim = SimulationLoop(scenario, p['seed'], self.emulator, pixy_send,
-                                  p['physics_rate_hz'], p['truth_rate_hz'])
+                                  p['physics_rate_hz'], p['truth_rate_hz'],
+                                  p['mavlink_fault_downlink'])
         self.schedule: TickSchedule | None = None
         self.thread_errors = 0
         self._outcome_msg: str | None = None
@@ -651,6 +808,10 @@ class DeckSimulatorNode(Node):
         counts['pixy.blocks_dropped'] = self.sim.counters['pixy_blocks_dropped']
         counts['pixy.send_errors'] = self.sim.counters['pixy_send_errors']
         counts['schedule.overruns'] = self.overruns     # stalls > MAX_TICK_WALL_S, not caught up
+        if self.sim.link is not None:   # datagrams the scenario's MAVLink faults took
+            lc = self.sim.link.counters
+            counts.update({f'link.{k}': v for k, v in lc.items()
+                           if k.endswith(('_cut', '_lost', '_delayed'))})
         grown = {k: v for k, v in counts.items() if v > self._warned.get(k, 0)}
         if grown:
             self._warned.update(grown)
@@ -779,5 +940,5 @@ if __name__ == '__main__':  # pragma: no cover
 
 
 __all__ = ['PARAMS', 'AutopilotEmulation', 'AutopilotParams', 'DeckSimulatorNode',
-           'SimulationLoop', 'TickSchedule', 'UdpLink', 'body_rates', 'main', 'make_mavlink_link',
-           'outcome_json', 'parse_mavlink_url']
+           'ImpairedLink', 'SimulationLoop', 'TickSchedule', 'UdpLink', 'body_rates', 'main',
+           'make_mavlink_link', 'outcome_json', 'parse_mavlink_url']

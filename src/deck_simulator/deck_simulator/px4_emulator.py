@@ -266,6 +266,12 @@ class Px4Emulator:
     def close(self) -> None:
         self.transport.close()
 
+    def set_transport(self, transport) -> None:
+        """Swap the byte transport (e.g. wrap it in the simulator's link-fault impairment,
+        :class:`deck_simulator.node.ImpairedLink`); the encoder writes to the new one."""
+        self.transport = transport
+        self.mav.file = _Writer(transport)
+
     # --- stepping ------------------------------------------------------------------------
 
     def update(self, t_s: float) -> None:
