@@ -211,7 +211,13 @@ class ApronEstimator:
                 self._own['off_deck'] += 1
             else:
                 candidates.append(c)
-        self.horizontal.update(t_s, candidates, height)
+        # the surface under the vehicle from the latest raw lidar height (not the filter's
+        # surface state, which lags a re-base at a deck edge): resolves false blobs
+        vf = self.vertical
+        surface = None
+        if vf.last_h_m is not None and self._pos is not None and self._recent_lidar(t_s):
+            surface = self._pos[1][2] - vf.last_h_m
+        self.horizontal.update(t_s, candidates, height, surface)
 
     def _height_at(self, t_s: float) -> float | None:
         vf = self.vertical

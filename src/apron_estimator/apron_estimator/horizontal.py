@@ -18,7 +18,16 @@ out in scalar closed form (``test_estimator_horizontal`` proves every step equal
   exact double integral of the zero-order-held acceleration between the two stamps
   (:class:`AccelIntegrator`), like PX4's landing_target_estimator;
 * measurement noise σ = σ0 + k·h (h = height above the deck);
-* NIS gate (2-D χ²), acquisition after N consistent detections, loss after a timeout.
+* NIS gate (2-D χ²), acquisition after N consistent detections, loss after a timeout;
+* rival candidates (beyond the paper, README "False blobs"): persistent detections that the
+  track does not explain (a sun glint next to the beacon) are kept as offsets from the track.
+  While a confirmed rival is unresolved the target is *ambiguous*: :meth:`state` adds the
+  squared offset to the reported variance (the spread of the two-hypothesis mixture), so the
+  planner does not descend. A rival is resolved with the lidar: the beacon sits on the deck,
+  so the surface under it is higher than under a blob beside the deck. The tracker records
+  the surface height seen while the vehicle hovers over each hypothesis; an unvisited rival
+  is *probed* (the track is moved onto it so that the planner flies there), and the lower
+  hypothesis is rejected (the track switches to the higher one if needed).
 """
 
 from __future__ import annotations
@@ -230,6 +239,16 @@ class HorizontalParams:
     init_vel_sigma_mps: float = 1.5   # velocity σ at (re-)initialisation
     use_accel_input: bool = True      # u = −vehicle acceleration (beyond the paper)
     accel_history_s: float = 3.0
+    # rival candidates (false blobs): see the module docstring
+    rival_gate_m: float = 0.2         # a detection this close to a rival's offset is that rival
+    rival_confirm_hits: int = 5       # detections before a rival makes the target ambiguous
+    rival_timeout_s: float = 1.0      # an unresolved rival unseen this long is dropped
+    rejected_rival_timeout_s: float = 30.0  # a rejected rival is remembered this long
+    ambiguity_min_sep_m: float = 0.15  # rivals closer than this to the track do not matter
+    verify_radius_m: float = 0.12     # vehicle this close over a hypothesis → surface sample
+    verify_dwell_s: float = 0.5       # ... after hovering there this long (filter settled)
+    deck_rise_m: float = 0.2          # the beacon's surface is higher by at least this
+    max_rivals: int = 4
 
     def __post_init__(self) -> None:
         o = 'HorizontalParams'
@@ -243,11 +262,45 @@ class HorizontalParams:
         if not isinstance(self.use_accel_input, bool):
             raise ValueError(f'{o}.use_accel_input must be a bool, got {self.use_accel_input!r}')
         chk.positive(o, 'accel_history_s', self.accel_history_s)
+        for name in ('rival_gate_m', 'rival_timeout_s', 'rejected_rival_timeout_s',
+                     'ambiguity_min_sep_m', 'verify_radius_m', 'verify_dwell_s',
+                     'deck_rise_m'):
+            chk.positive(o, name, getattr(self, name))
+        chk.integer_at_least(o, 'rival_confirm_hits', self.rival_confirm_hits, 1)
+        chk.integer_at_least(o, 'max_rivals', self.max_rivals, 0)
         if self.accel_history_s < self.lost_timeout_s:
             raise ValueError(f'{o}.accel_history_s must be >= lost_timeout_s')
 
     def sigma_m(self, height_m: float) -> float:
         return self.sigma0_m + self.sigma_per_m * max(0.0, height_m)
+
+
+def _sample(t_over: float | None, surface: float | None, t_s: float, surface_m: float,
+            dwell_s: float) -> tuple[float, float | None]:
+    """Surface evidence while hovering over a hypothesis: nothing for the first ``dwell_s``,
+    then a running average (α = 0.1 per frame) that starts at the first settled sample."""
+    if t_over is None:
+        return t_s, surface
+    if t_s - t_over < dwell_s:
+        return t_over, surface
+    if surface is None or t_s - t_over < dwell_s + 1e-3 + 0.05:
+        # first settled frame of this visit: restart the average here
+        return t_over, surface_m if surface is None else surface + 0.5 * (surface_m - surface)
+    return t_over, surface + 0.1 * (surface_m - surface)
+
+
+class _Rival:
+    """A persistent detection the track does not explain: its offset from the track (ENU)."""
+
+    __slots__ = ('dx', 'dy', 'hits', 'rejected', 'surface', 't_over', 't_seen')
+
+    def __init__(self, dx: float, dy: float, t_s: float) -> None:
+        self.dx, self.dy = dx, dy
+        self.hits = 1
+        self.t_seen = t_s
+        self.surface: float | None = None   # surface height seen from over it
+        self.t_over: float | None = None    # since when the vehicle hovers over it
+        self.rejected = False
 
 
 class HorizontalTracker:
@@ -266,7 +319,8 @@ class HorizontalTracker:
         self.accel = AccelIntegrator(self.params.accel_history_s)
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'gated': 0}
         self.events: dict[str, int] = {'acquired': 0, 'lost': 0, 'restarts': 0,
-                                        'rescaled': 0}
+                                        'rescaled': 0, 'rivals_rejected': 0, 'switches': 0,
+                                        'probes': 0}
         self.reset()
 
     def reset(self) -> None:
@@ -277,6 +331,15 @@ class HorizontalTracker:
         self.t_last_accept: float | None = None
         self.visible = False
         self.last_nis = 0.0
+        self.rivals: list[_Rival] = []
+        self.surface: float | None = None     # surface height seen from over the track
+        self.t_over: float | None = None
+        self._amb = (0.0, 0.0)                # squared offsets of the unresolved rivals
+
+    @property
+    def ambiguous(self) -> bool:
+        """A confirmed, unresolved rival exists (the target may be a false blob)."""
+        return self._amb[0] + self._amb[1] > 0.0
 
     @property
     def tracked(self) -> bool:
@@ -318,17 +381,23 @@ class HorizontalTracker:
         self.mode = 'acquiring'
         self.hits = 1
         self.last_nis = 0.0
+        self.rivals = []          # their offsets were relative to the old track
+        self.surface = None
+        self.t_over = None
+        self._amb = (0.0, 0.0)
         if self.params.acquire_hits <= 1:
             self.mode = 'tracking'
             self.events['acquired'] += 1
 
     def update(self, t_s: float, candidates: list[tuple[float, float]],
-               height_m: float) -> bool:
+               height_m: float, surface_m: float | None = None) -> bool:
         """One camera frame: candidate beacon offsets (ENU, m), best first; True if accepted.
 
         ``t_s`` is the exposure stamp; frames must be strictly in order (else rejected and
         counted). Among the candidates passing the NIS gate the one with the smallest NIS is
-        used; others are counted as ``gated``. An empty list is a frame without a detection.
+        used; others are counted as ``gated`` and feed the rivals. An empty list is a frame
+        without a detection. ``surface_m`` is the surface height under the vehicle at t_s
+        (vertical filter), None if unknown: it resolves rivals.
         """
         if not (math.isfinite(t_s) and math.isfinite(height_m)):
             self.rejected['nan'] += 1
@@ -372,6 +441,8 @@ class HorizontalTracker:
             return False
         self.rejected['gated'] += len(good) - 1
         kf.update(best[0], best[1], r)
+        if self.mode == 'tracking' and (len(good) > 1 or self.rivals):
+            self._rivals(t_s, good, best, surface_m)
         self.last_nis = best_nis
         self.t_last_accept = t_s
         self.visible = True
@@ -382,10 +453,99 @@ class HorizontalTracker:
                 self.events['acquired'] += 1
         return True
 
+    # -- rivals (false blobs) ----------------------------------------------------------------
+    def _rivals(self, t_s: float, good: list[tuple[float, float]],
+                best: tuple[float, float], surface_m: float | None) -> None:
+        """Associate the unexplained detections with rivals, sample the surface under the
+        track and the rivals, resolve or probe; refresh the ambiguity spread.
+
+        A rival's offset is measured from the track's own detection in the same frame (not
+        from the filter's estimate, whose corrections would shift every offset)."""
+        p = self.params
+        kf = self.kf
+        gate2 = p.rival_gate_m * p.rival_gate_m
+        rivals = self.rivals
+        for c in good:
+            if c is best:
+                continue
+            dx, dy = c[0] - best[0], c[1] - best[1]
+            near, d2min = None, gate2
+            for rv in rivals:
+                d2 = (dx - rv.dx) ** 2 + (dy - rv.dy) ** 2
+                if d2 < d2min:
+                    near, d2min = rv, d2
+            if near is None:
+                if len(rivals) < p.max_rivals:
+                    rivals.append(_Rival(dx, dy, t_s))
+                continue
+            near.dx += 0.2 * (dx - near.dx)    # slow average: both points are near static
+            near.dy += 0.2 * (dy - near.dy)
+            near.hits += 1
+            near.t_seen = t_s
+        rivals[:] = [rv for rv in rivals if t_s - rv.t_seen <= (
+            p.rejected_rival_timeout_s if rv.rejected else p.rival_timeout_s)]
+        # surface samples: the vehicle hovers over a hypothesis (rel = beacon − vehicle ≈ 0)
+        r2 = p.verify_radius_m * p.verify_radius_m
+        if surface_m is not None:
+            if kf.px * kf.px + kf.py * kf.py < r2:
+                self.t_over, self.surface = _sample(self.t_over, self.surface, t_s,
+                                                    surface_m, p.verify_dwell_s)
+            else:
+                self.t_over = None
+            for rv in rivals:
+                if (kf.px + rv.dx) ** 2 + (kf.py + rv.dy) ** 2 < r2:
+                    rv.t_over, rv.surface = _sample(rv.t_over, rv.surface, t_s, surface_m,
+                                                    p.verify_dwell_s)
+                else:
+                    rv.t_over = None
+        sep2 = p.ambiguity_min_sep_m * p.ambiguity_min_sep_m
+        open_ = [rv for rv in rivals if not rv.rejected and rv.hits >= p.rival_confirm_hits
+                 and rv.dx * rv.dx + rv.dy * rv.dy > sep2]
+        for rv in open_:
+            if rv.surface is None or self.surface is None:
+                continue
+            if rv.surface > self.surface + p.deck_rise_m:
+                self._switch(rv, reject_old=True)       # the rival is on the deck
+                self.events['switches'] += 1
+                self.events['rivals_rejected'] += 1
+                break
+            if self.surface > rv.surface + p.deck_rise_m:
+                rv.rejected = True
+                self.events['rivals_rejected'] += 1
+        open_ = [rv for rv in rivals if not rv.rejected and rv.hits >= p.rival_confirm_hits
+                 and rv.dx * rv.dx + rv.dy * rv.dy > sep2]
+        if open_ and self.surface is not None:
+            unvisited = [rv for rv in open_ if rv.surface is None]
+            if unvisited:
+                # the track is verified, a rival is not: fly there (the planner follows)
+                self._switch(unvisited[0], reject_old=False)
+                self.events['probes'] += 1
+        self._amb = (max((rv.dx * rv.dx for rv in open_), default=0.0),
+                     max((rv.dy * rv.dy for rv in open_), default=0.0))
+
+    def _switch(self, rv: _Rival, reject_old: bool) -> None:
+        """Move the track onto rival ``rv``; the old track becomes a rival at −offset."""
+        kf = self.kf
+        dx, dy = rv.dx, rv.dy
+        kf.px += dx
+        kf.py += dy
+        old = _Rival(-dx, -dy, rv.t_seen)
+        old.hits = max(rv.hits, self.params.rival_confirm_hits)
+        old.surface = self.surface
+        old.rejected = reject_old
+        self.surface, self.t_over = rv.surface, None
+        for other in self.rivals:
+            if other is not rv:
+                other.dx -= dx
+                other.dy -= dy
+        self.rivals = [other for other in self.rivals if other is not rv] + [old]
+
     def state(self, t_s: float) -> tuple[float, float, float, float, float, float, bool, float]:
         """(x, y, vx, vy, var_x, var_y, tracked, time_since_seen_s) predicted to t_s.
 
         Does not change the filter. Before the first detection: zeros, variance 1e4 m².
+        While :attr:`ambiguous` the variances include the squared offsets of the unresolved
+        rivals (the spread of the hypotheses).
         """
         if self.t_filter is None or not math.isfinite(t_s):
             return 0.0, 0.0, 0.0, 0.0, _UNKNOWN_VAR_M2, _UNKNOWN_VAR_M2, False, math.inf
@@ -393,9 +553,10 @@ class HorizontalTracker:
         tracked = self.mode == 'tracking' and since <= self.params.lost_timeout_s
         kf = self.kf
         dt = t_s - self.t_filter
+        ax2, ay2 = self._amb
         if dt <= 0.0:
-            return kf.px, kf.py, kf.vx, kf.vy, kf.ax, kf.ay, tracked, since
+            return kf.px, kf.py, kf.vx, kf.vy, kf.ax + ax2, kf.ay + ay2, tracked, since
         dpx, dvx, dpy, dvy = self._control(self.t_filter, t_s)
         x, y, vx, vy, var_x, var_y = kf.predicted(dt, self.params.accel_psd_m2ps3,
                                                   dpx, dvx, dpy, dvy)
-        return x, y, vx, vy, var_x, var_y, tracked, since
+        return x, y, vx, vy, var_x + ax2, var_y + ay2, tracked, since

@@ -50,6 +50,7 @@ class PlannerParams:
 
     landing_area_m: tuple[float, float] = (0.0, 0.0)   # where the apron should be (ENU)
     max_xy_dist_m: float = 3.0          # accept a target only this close to the area
+    max_target_sigma_m: float = 0.2     # larger reported σ (e.g. rival blobs) → no descent
     acceptance_radius_m: float = 0.15   # horizontally close (paper section 4.2: 0.15 m)
     acceptance_hold_s: float = 0.5      # ... for this long before descending
     acceptance_hysteresis: float = 1.5  # leave the radius × this → pause and re-align
@@ -203,6 +204,7 @@ class LandingPlanner:
         self._yaw: float | None = None
         self._t_last: float | None = None
         self._t_target_ok = -math.inf
+        self._ambiguous = False     # target σ above max_target_sigma_m (README "False blobs")
         self._last_target: tuple[float, float] | None = None
         self._pos: tuple[float, float, float] | None = None
         self._vel: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -338,6 +340,10 @@ class LandingPlanner:
         lx, ly = self.params.landing_area_m
         if math.hypot(ap[0] - lx, ap[1] - ly) > self.params.max_xy_dist_m:
             return False, (0.0, 0.0)   # like ArduPilot PLND_XY_DIST_MAX
+        var = apron.rel_position_var_m2
+        sig = self.params.max_target_sigma_m
+        # a NaN variance reads as ambiguous (the comparison below is then False)
+        self._ambiguous = not (var[0] + var[1] <= sig * sig)
         self._t_target_ok = t_s
         self._last_target = (ap[0], ap[1])
         return True, (rp[0], rp[1])
@@ -479,7 +485,7 @@ class LandingPlanner:
             if lost_for > p.target_lost_timeout_s:
                 self._search_or_fallback(t_s, f'target lost for {lost_for:.1f} s in ALIGN')
                 return
-            if target_ok and dist <= p.acceptance_radius_m:
+            if target_ok and dist <= p.acceptance_radius_m and not self._ambiguous:
                 if latch.t_in_radius is None:
                     latch.t_in_radius = t_s
                 if t_s - latch.t_in_radius >= p.acceptance_hold_s:
@@ -499,6 +505,11 @@ class LandingPlanner:
             elif target_ok and dist > p.acceptance_radius_m * p.acceptance_hysteresis:
                 self._enter(Mode.ALIGN, t_s, f'drifted {dist:.2f} m off the target: pause '
                             'the descent and re-align (Step 5 → Step 4)')
+                self._on_entry(t_s)
+            elif target_ok and self._ambiguous:
+                self._enter(Mode.ALIGN, t_s, 'target ambiguous (σ > '
+                            f'{p.max_target_sigma_m:.2f} m, e.g. a false blob beside it): '
+                            'pause the descent and re-align')
                 self._on_entry(t_s)
         elif mode in (Mode.FINAL, Mode.FALLBACK):
             if self._landed(t_s, vert_ok, closing, vehicle, veh_ok):
