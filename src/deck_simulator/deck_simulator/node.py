@@ -722,6 +722,9 @@ PARAMS = [
            "scenario MAVLink faults on the telemetry (autopilot -> bridge): 'none', 'cut' "
            "(only the link-loss window, default), 'all' (also loss and latency); the uplink "
            '(bridge -> autopilot) always gets them all'),
+    ParamSpec('signing_key_file', '', 'MAVLink 2 signing key of the emulated autopilot (32 '
+              "raw bytes or 64 hex characters, as the bridge's): sign telemetry, drop unsigned "
+              'or wrongly signed input; empty = unsigned'),
     ParamSpec('map_frame', 'map', 'world frame id (ENU)', lambda v: v.strip() != '',
               'must not be empty'),
     ParamSpec('base_frame', 'base_link', 'vehicle body frame id (FLU)',
@@ -770,6 +773,11 @@ class DeckSimulatorNode(Node):
                                  f'open the socket: {exc}') from None
         self.emulator = Px4Emulator(EmulatorParams(
             offboard_loss_action=p['offboard_loss_action'], thrust=thrust), transport=link)
+        if p['signing_key_file']:
+            from mavlink_bridge.node import load_signing_key  # ParameterError if bad
+            # signing timestamps: 10 µs units since 2015-01-01 (wall clock, as PX4 with RTC)
+            self.emulator.setup_signing(load_signing_key(p['signing_key_file']),
+                                        int(max(time.time() - 1420070400.0, 0.0) * 1e5))
         self._pixy_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         pixy_addr = (p['pixy_udp_address'], p['pixy_udp_port'])
         sock = self._pixy_sock

@@ -223,7 +223,8 @@ class Px4Emulator:
                                    srcComponent=p.component_id)
         self.mav.robust_parsing = True
         self.rejected: dict[str, int] = {'nan': 0, 'bad_data': 0, 'out_of_order': 0,
-                                         'wrong_target': 0, 'unsupported_mask': 0}
+                                         'wrong_target': 0, 'unsupported_mask': 0,
+                                         'bad_signature': 0}
         self.counters: dict[str, int] = {'setpoints_rx': 0, 'commands_rx': 0,
                                          'heartbeats_rx': 0, 'messages_tx': 0,
                                          'failsafes': 0}
@@ -266,6 +267,23 @@ class Px4Emulator:
     def close(self) -> None:
         self.transport.close()
 
+    def setup_signing(self, secret_key: bytes, initial_timestamp: int, link_id: int = 0) -> None:
+        """MAVLink 2 signing as PX4 does it once a key is provisioned: every outgoing message
+        is signed with ``secret_key`` (32 bytes), and incoming messages without a valid
+        signature for it are dropped (``rejected['bad_signature']``). ``initial_timestamp``
+        is in 10 µs units since 2015-01-01 (the caller's wall clock: a receiver refuses a new
+        stream more than 60 s behind its own time)."""
+        if not isinstance(secret_key, bytes | bytearray) or len(secret_key) != 32:
+            raise ValueError('Px4Emulator.setup_signing: secret_key must be 32 bytes')
+        if not isinstance(initial_timestamp, int) or initial_timestamp < 0:
+            raise ValueError('Px4Emulator.setup_signing: initial_timestamp must be an int >= 0')
+        sig = self.mav.signing
+        sig.secret_key = bytes(secret_key)
+        sig.sign_outgoing = True
+        sig.allow_unsigned_callback = None
+        sig.link_id = link_id
+        sig.timestamp = initial_timestamp
+
     def set_transport(self, transport) -> None:
         """Swap the byte transport (e.g. wrap it in the simulator's link-fault impairment,
         :class:`deck_simulator.node.ImpairedLink`); the encoder writes to the new one."""
@@ -295,7 +313,10 @@ class Px4Emulator:
             valid = False
             for msg in msgs:
                 if msg.get_type() == 'BAD_DATA':
-                    self.rejected['bad_data'] += 1
+                    if getattr(msg, 'reason', '') == 'Invalid signature':
+                        self.rejected['bad_signature'] += 1
+                    else:
+                        self.rejected['bad_data'] += 1
                     continue
                 valid = True
                 try:

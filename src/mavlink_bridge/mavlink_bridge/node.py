@@ -94,7 +94,14 @@ PARAMS = [
 ]
 
 
-def _load_signing_key(path: str) -> bytes:
+def load_signing_key(path: str) -> bytes:
+    """The 32-byte MAVLink 2 signing secret from ``path`` (32 raw bytes, or 64 hex characters
+    with optional surrounding whitespace); ParameterError naming ``signing_key_file`` if not.
+
+    The same key must be provisioned on the autopilot (see the package README, "Signing"):
+    with a key, the bridge signs everything it sends *and* drops every unsigned or wrongly
+    signed message it receives (pymavlink without ``allow_unsigned_callback``).
+    """
     try:
         with open(path, 'rb') as f:
             raw = f.read().strip()
@@ -110,6 +117,9 @@ def _load_signing_key(path: str) -> bytes:
         raise ParameterError("parameter 'signing_key_file': need 32 raw bytes or 64 hex "
                              f'characters, got {len(raw)} bytes')
     return raw
+
+
+_load_signing_key = load_signing_key   # the earlier private name
 
 
 class MavlinkBridgeNode(Node):
@@ -138,9 +148,18 @@ class MavlinkBridgeNode(Node):
         self.conn = mavutil.mavlink_connection(
             cfg['connection'], baud=cfg['baud'], source_system=cfg['system_id'],
             source_component=cfg['component_id'], dialect='common')
-        if cfg['signing_key_file']:
-            self.conn.setup_signing(_load_signing_key(cfg['signing_key_file']),
-                                    sign_outgoing=True)
+        self.signed = bool(cfg['signing_key_file'])
+        if self.signed:
+            try:
+                key = load_signing_key(cfg['signing_key_file'])
+            except ParameterError:
+                with contextlib.suppress(Exception):
+                    self.conn.close()
+                raise
+            # outgoing: signed (link id 0, timestamp from the wall clock, as pymavlink does);
+            # incoming: only correctly signed messages (no unsigned callback)
+            self.conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=None,
+                                    link_id=0)
         self.errors = {'recv_exceptions': 0, 'send_exceptions': 0}
         # latest telemetry (ENU/FLU)
         self._att = None          # ((roll, pitch, yaw), rates)
@@ -220,6 +239,8 @@ class MavlinkBridgeNode(Node):
         if kind == 'BAD_DATA':
             with self._lock:
                 self.core.count_bad_data()
+            if getattr(msg, 'reason', '') == 'Invalid signature':
+                self._count_rejected('bad_signature')   # unsigned or another key
         elif kind == 'HEARTBEAT':
             with self._lock:
                 ok = self.core.on_heartbeat(now, msg.get_srcSystem(), msg.get_srcComponent(),
