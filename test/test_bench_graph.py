@@ -105,7 +105,9 @@ def test_short_bench_run_writes_finite_positive_figures(tmp_path):
     for key in ('e2e_latency_ms', 'loop_jitter_ms', 'stack_latency_ms'):
         for q in ('p50', 'p99'):
             v = r[key][q]
-            assert isinstance(v, float) and math.isfinite(v) and v > 0.0, (key, q, v)
+            # jitter is lateness against the 10 ms schedule: 0.0 is a real (good) figure
+            floor_ok = v >= 0.0 if key == 'loop_jitter_ms' else v > 0.0
+            assert isinstance(v, float) and math.isfinite(v) and floor_ok, (key, q, v)
         assert r[key]['p99'] >= r[key]['p50']
     # the total contains the camera's own 20 ms exposure-to-delivery latency
     assert r['e2e_latency_ms']['p50'] > r['camera_latency_ms'] == pytest.approx(20.0)

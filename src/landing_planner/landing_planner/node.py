@@ -104,6 +104,8 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'landed_height_tol_m': 'landed: height within this (m) of gear_height_m',
     'landed_speed_tol_mps': 'landed: closing speed magnitude below this (m/s)',
     'landed_hold_s': 'landed: the conditions held this long (s) (Step 15)',
+    'max_target_sigma_m': 'no descent while the target position σ (m) exceeds this (an '
+                          'unresolved rival IR blob inflates it)',
     'landed_press_m': 'landed: the height reference already this far (m) below the measured '
                       'height (< final_press_m)',
     'invalid_timeout_s': 'invalid vehicle/vertical state this long (s) → safe mode',
