@@ -82,6 +82,7 @@ class BridgeParams:
     extended_sys_state_rate_hz: float = 5.0
     use_highres_imu: bool = True           # HIGHRES_IMU, else SCALED_IMU
     target_component: int = 1              # autopilot component id (MAV_COMP_ID_AUTOPILOT1)
+    link_monitor: LinkMonitorParams = field(default_factory=lambda: LinkMonitorParams())
     thrust: ThrustCalibration = field(default_factory=ThrustCalibration)
 
     def __post_init__(self) -> None:
@@ -114,6 +115,8 @@ class BridgeParams:
                              'must be in [0, 255]')
         if not isinstance(self.thrust, ThrustCalibration):
             raise ValueError('BridgeParams.thrust must be a ThrustCalibration')
+        if not isinstance(self.link_monitor, LinkMonitorParams):
+            raise ValueError('BridgeParams.link_monitor must be a LinkMonitorParams')
 
     @property
     def offboard_mode(self) -> str:
@@ -139,7 +142,8 @@ class AttitudeSetpoint:
 class Outgoing:
     """Something the node must send: a HEARTBEAT, a COMMAND_LONG or a PARAM_REQUEST_READ."""
 
-    kind: str                                  # 'heartbeat' | 'command' | 'param_request'
+    kind: str               # 'heartbeat' | 'command' | 'param_request' | 'timesync'
+    #                         ('timesync': a TIMESYNC request, tc1 = 0, ts1 = params[0] s → ns)
     command: int = 0
     params: tuple[float, ...] = (0.0,) * 7
     param_id: str = ''
@@ -196,6 +200,152 @@ class StreamLimiter:
         return True
 
 
+@dataclass(frozen=True, slots=True)
+class LinkMonitorParams:
+    """MAVLink link-latency monitor (TIMESYNC round trips), validated at construction."""
+
+    period_s: float = 0.1          # TIMESYNC request period (MAVROS/PX4 use 10 Hz)
+    max_latency_s: float = 0.06    # one-way latency (RTT / 2) above which the link is degraded
+    window: int = 4                # estimate = minimum of the last `window` one-way samples
+    confirm_s: float = 0.2         # the estimate must stay above the limit this long
+    max_outstanding: int = 64      # unanswered requests remembered (older ones are forgotten)
+
+    def __post_init__(self) -> None:
+        for name in ('period_s', 'max_latency_s'):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) \
+                    or v <= 0.0:
+                raise ValueError(f'LinkMonitorParams.{name} = {v!r}: must be a finite number '
+                                 '> 0')
+        v = self.confirm_s
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) \
+                or v < 0.0:
+            raise ValueError(f'LinkMonitorParams.confirm_s = {v!r}: must be a finite number '
+                             '>= 0')
+        for name, hi in (('window', 100), ('max_outstanding', 10000)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi:
+                raise ValueError(f'LinkMonitorParams.{name} = {v!r}: must be an integer in '
+                                 f'[1, {hi}]')
+
+
+class LinkMonitor:
+    """Link latency from MAVLink TIMESYNC round trips; decides when to stop commanding.
+
+    Beyond the paper: its loops (horizontal PID, DOB altitude law (16)-(19)) assume the
+    commanded attitude and thrust act at once; the inner loops have time constants of
+    ~0.1 s, so an actuation delay of that order destroys their phase margin
+    (docs/failsafe.md, "Latency"). The companion therefore measures the link the way MAVROS
+    does: every ``period_s`` it sends TIMESYNC(tc1 = 0, ts1 = its send time); the autopilot
+    echoes ts1 in its reply, so ``rtt = t_received - ts1`` needs no clock agreement.
+
+    * one-way sample = rtt / 2 (a symmetric link; the loop delay the link adds is the whole
+      rtt: telemetry one way, the command back);
+    * estimate :attr:`latency_s` = the minimum of the last ``window`` samples (queueing and
+      polling jitter only ever *add* delay, so the minimum is the robust floor);
+    * :attr:`degraded` once the estimate has stayed above ``max_latency_s`` for
+      ``confirm_s`` (checked at each reply). It latches: a link that was too slow is not
+      trusted again until :meth:`reset` (the operator's explicit offboard request), because
+      re-engaging a loop that integrated against a vehicle it did not control gave hard
+      touchdowns (docs/failsafe.md, "No automatic re-engagement").
+
+    Lost requests are simply never answered (no sample): packet loss is not latency.
+    Replies must match a request still remembered (``max_outstanding``) and arrive in time
+    order; anything else is counted in :attr:`rejected` and changes nothing.
+    """
+
+    __slots__ = ('_exceed_since', '_last_rx_s', '_next_s', '_outstanding', '_samples', 'counters',
+                 'degraded', 'degraded_since_s', 'params', 'reason', 'rejected', 'rtt_s')
+
+    def __init__(self, params: LinkMonitorParams | None = None) -> None:
+        self.params = params or LinkMonitorParams()
+        self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'unknown_request': 0,
+                                         'negative_rtt': 0}
+        self.counters: dict[str, int] = {'requests': 0, 'replies': 0, 'exceeded': 0}
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the samples and clear :attr:`degraded` (counters are kept)."""
+        self._outstanding: list[float] = []
+        self._samples: list[float] = []
+        self._next_s = -math.inf
+        self._last_rx_s = -math.inf
+        self._exceed_since: float | None = None
+        self.rtt_s = math.nan
+        self.degraded = False
+        self.degraded_since_s = math.nan
+        self.reason = ''
+
+    @property
+    def latency_s(self) -> float:
+        """One-way latency estimate (s): min of the last ``window`` rtt/2; NaN before any."""
+        return min(self._samples) if self._samples else math.nan
+
+    def poll(self, t_s: float) -> bool:
+        """True when a TIMESYNC request is due at ``t_s``; the caller then sends one with
+        ``ts1 = t_s`` (it is remembered as outstanding)."""
+        if t_s < self._next_s:   # the common case first (NaN fails both tests below)
+            return False
+        if not math.isfinite(t_s):
+            self.rejected['nan'] += 1
+            return False
+        self._next_s = t_s + self.params.period_s
+        out = self._outstanding
+        out.append(t_s)
+        if len(out) > self.params.max_outstanding:
+            del out[0]
+        self.counters['requests'] += 1
+        return True
+
+    def on_timesync(self, t_sent_s: float, t_received_s: float) -> bool:
+        """A TIMESYNC reply echoing ``t_sent_s`` (our ts1) received at ``t_received_s``.
+
+        Returns True when it was accepted as a sample. Updates :attr:`degraded`.
+        """
+        if not (math.isfinite(t_sent_s) and math.isfinite(t_received_s)):
+            self.rejected['nan'] += 1
+            return False
+        if t_received_s < self._last_rx_s:
+            self.rejected['out_of_order'] += 1
+            return False
+        rtt = t_received_s - t_sent_s
+        if rtt < 0.0:
+            self.rejected['negative_rtt'] += 1
+            return False
+        out = self._outstanding
+        for i in range(len(out) - 1, -1, -1):
+            if abs(out[i] - t_sent_s) <= 1e-6:   # ts1 travels as integer ns
+                del out[i]
+                break
+        else:
+            self.rejected['unknown_request'] += 1
+            return False
+        self._last_rx_s = t_received_s
+        self.counters['replies'] += 1
+        self.rtt_s = rtt
+        p = self.params
+        s = self._samples
+        s.append(0.5 * rtt)
+        if len(s) > p.window:
+            del s[0]
+        if self.degraded:
+            return True
+        est = min(s)
+        if len(s) < p.window or est <= p.max_latency_s:
+            self._exceed_since = None
+            return True
+        if self._exceed_since is None:
+            self._exceed_since = t_received_s
+            self.counters['exceeded'] += 1
+        if t_received_s - self._exceed_since >= p.confirm_s:
+            self.degraded = True
+            self.degraded_since_s = t_received_s
+            self.reason = (f'link latency {est * 1e3:.0f} ms > {p.max_latency_s * 1e3:.0f} ms '
+                           f'for {t_received_s - self._exceed_since:.2f} s: commanding stopped '
+                           '(autopilot failsafe)')
+        return True
+
+
 class _Request:
     """A pending arm/mode request, retried until the HEARTBEAT confirms it or it times out."""
 
@@ -223,7 +373,9 @@ class BridgeCore:
                                          'other_system': 0, 'bad_data': 0}
         self.counters: dict[str, int] = {'setpoints_sent': 0, 'rate_limited': 0,
                                          'stale_attitude': 0, 'disabled': 0, 'no_link': 0,
-                                         'heartbeats_rx': 0, 'commands_sent': 0}
+                                         'heartbeats_rx': 0, 'commands_sent': 0,
+                                         'link_degraded': 0}
+        self.link_monitor = LinkMonitor(self.params.link_monitor)
         self.reset()
 
     def reset(self) -> None:
@@ -258,6 +410,7 @@ class BridgeCore:
         self._offboard: _Request | None = None
         self._arm: _Request | None = None
         self.last_result = ''
+        self.link_monitor.reset()
 
     # --- link ----------------------------------------------------------------------------
 
@@ -385,6 +538,11 @@ class BridgeCore:
         if not self.link_up(t_s):
             self.counters['no_link'] += 1
             return None
+        if self.link_monitor.degraded:
+            # the link is too slow to close the loops over: stop streaming, so that the
+            # autopilot's offboard-loss failsafe takes over (LinkMonitor)
+            self.counters['link_degraded'] += 1
+            return None
         if t_s - self._att_rx_s > p.input_timeout_s:
             self.counters['stale_attitude'] += 1
             return None
@@ -398,6 +556,19 @@ class BridgeCore:
         norm = p.thrust.to_norm(thrust_n)
         r, pt, y = self._att_euler
         return AttitudeSetpoint(t_s, self._att_q_ned, norm, thrust_n, r, pt, y)
+
+    def on_timesync(self, t_s: float, tc1_ns: int, ts1_ns: int) -> bool:
+        """A TIMESYNC from the autopilot received at ``t_s``. A reply (``tc1 != 0``) echoes
+        our request's ``ts1`` (ns of our ``t_s``) and gives the round trip to
+        :attr:`link_monitor`; requests from the autopilot (``tc1 == 0``) are not measured.
+        Returns True when a round-trip sample was accepted. Logs the degradation once."""
+        if not (isinstance(tc1_ns, int) and isinstance(ts1_ns, int)) or tc1_ns == 0:
+            return False
+        was = self.link_monitor.degraded
+        ok = self.link_monitor.on_timesync(ts1_ns * 1e-9, t_s)
+        if self.link_monitor.degraded and not was:
+            self.last_result = self.link_monitor.reason
+        return ok
 
     def streaming(self, t_s: float) -> bool:
         """True while setpoints flow (the last one is younger than ``max_stream_gap_s``)."""
@@ -431,6 +602,10 @@ class BridgeCore:
         problem = self.ardupilot_config_problem()
         if problem:
             return False, problem
+        if self.link_monitor.degraded:
+            # the operator's explicit way back after a latency stop: measure afresh (a link
+            # that is still slow degrades again after window + confirm_s)
+            self.link_monitor.reset()
         if self.mode == p.offboard_mode:
             return True, f'already in {p.offboard_mode}'
         self._offboard = _Request(t_s, p.offboard_mode)
@@ -476,6 +651,8 @@ class BridgeCore:
             self._arm = None
             return out
         self._link_was_up = True
+        if self.link_monitor.poll(t_s):
+            out.append(Outgoing('timesync', params=(t_s,)))
         if t_s - self._last_interval_s >= p.interval_refresh_s:
             self._last_interval_s = t_s
             out.extend(self._interval_requests())
