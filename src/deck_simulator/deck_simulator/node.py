@@ -53,6 +53,7 @@ from dob_altitude.pid import PidAltitudeController, PidParams
 from dob_altitude.types import AltitudeInput
 from landing_planner.horizontal import HorizontalController, HorizontalParams
 from mavlink_bridge.conversions import ThrustCalibration
+from mavlink_bridge.signing import load_signing_key
 from nav_msgs.msg import Odometry
 from pixy_driver.protocol import block_in_range, encode_frame
 from rclpy.exceptions import InvalidParameterTypeException
@@ -774,7 +775,6 @@ class DeckSimulatorNode(Node):
         self.emulator = Px4Emulator(EmulatorParams(
             offboard_loss_action=p['offboard_loss_action'], thrust=thrust), transport=link)
         if p['signing_key_file']:
-            from mavlink_bridge.node import load_signing_key  # ParameterError if bad
             # signing timestamps: 10 µs units since 2015-01-01 (wall clock, as PX4 with RTC)
             self.emulator.setup_signing(load_signing_key(p['signing_key_file']),
                                         int(max(time.time() - 1420070400.0, 0.0) * 1e5))

@@ -46,6 +46,7 @@ from mavlink_bridge.conversions import (
     px4_mode_name,
     range_m_to_distance_cm,
 )
+from mavlink_bridge.signing import verify_signature_first
 from pymavlink.dialects.v20 import common as mavlink
 
 Vec3 = tuple[float, float, float]
@@ -283,6 +284,8 @@ class Px4Emulator:
         sig.allow_unsigned_callback = None
         sig.link_id = link_id
         sig.timestamp = initial_timestamp
+        # a forged packet must not advance a stream's replay timestamp
+        verify_signature_first(self.mav)
 
     def set_transport(self, transport) -> None:
         """Swap the byte transport (e.g. wrap it in the simulator's link-fault impairment,

@@ -52,6 +52,9 @@ from mavlink_bridge.conversions import (
     scaled_imu_to_flu,
 )
 from mavlink_bridge.core import BridgeCore, BridgeParams
+from mavlink_bridge.signing import load_signing_key, verify_signature_first
+
+_load_signing_key = load_signing_key   # the earlier private name
 
 PARAMS = [
     ParamSpec('connection', 'udpin:127.0.0.1:14540',
@@ -94,34 +97,6 @@ PARAMS = [
 ]
 
 
-def load_signing_key(path: str) -> bytes:
-    """The 32-byte MAVLink 2 signing secret from ``path`` (32 raw bytes, or 64 hex characters
-    with optional surrounding whitespace); ParameterError naming ``signing_key_file`` if not.
-
-    The same key must be provisioned on the autopilot (see the package README, "Signing"):
-    with a key, the bridge signs everything it sends *and* drops every unsigned or wrongly
-    signed message it receives (pymavlink without ``allow_unsigned_callback``).
-    """
-    try:
-        with open(path, 'rb') as f:
-            raw = f.read().strip()
-    except OSError as exc:
-        raise ParameterError(f"parameter 'signing_key_file': cannot read {path!r}: {exc}") \
-            from exc
-    if len(raw) == 64:
-        try:
-            return bytes.fromhex(raw.decode('ascii'))
-        except ValueError:
-            pass
-    if len(raw) != 32:
-        raise ParameterError("parameter 'signing_key_file': need 32 raw bytes or 64 hex "
-                             f'characters, got {len(raw)} bytes')
-    return raw
-
-
-_load_signing_key = load_signing_key   # the earlier private name
-
-
 class MavlinkBridgeNode(Node):
     """The ``mavlink_bridge`` node; see the package README for its interface."""
 
@@ -160,6 +135,7 @@ class MavlinkBridgeNode(Node):
             # incoming: only correctly signed messages (no unsigned callback)
             self.conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=None,
                                     link_id=0)
+            verify_signature_first(self.conn.mav)
         self.errors = {'recv_exceptions': 0, 'send_exceptions': 0}
         # latest telemetry (ENU/FLU)
         self._att = None          # ((roll, pitch, yaw), rates)
