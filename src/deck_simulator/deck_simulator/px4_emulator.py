@@ -9,7 +9,8 @@ It is stepped with the simulator's time ``t_s`` (never the wall clock):
 
 ``update(t_s)``
     read every pending packet and act on it: COMMAND_LONG (SET_MESSAGE_INTERVAL,
-    COMPONENT_ARM_DISARM, DO_SET_MODE, all answered with COMMAND_ACK), SET_ATTITUDE_TARGET
+    COMPONENT_ARM_DISARM, DO_SET_MODE, all answered with COMMAND_ACK), TIMESYNC requests
+    (answered at once like PX4: ``tc1`` = emulator time in ns, ``ts1`` echoed), SET_ATTITUDE_TARGET
     (decoded back to ENU/FLU angles and newtons with the bridge's own
     :class:`~mavlink_bridge.conversions.ThrustCalibration`), HEARTBEAT; then run the mode logic:
     OFFBOARD is accepted only after setpoints have streamed > 1 s at > 2 Hz; if they stop for
@@ -228,7 +229,7 @@ class Px4Emulator:
                                          'bad_signature': 0}
         self.counters: dict[str, int] = {'setpoints_rx': 0, 'commands_rx': 0,
                                          'heartbeats_rx': 0, 'messages_tx': 0,
-                                         'failsafes': 0}
+                                         'failsafes': 0, 'timesync_rx': 0}
         self.intervals_s = dict(DEFAULT_INTERVALS_S)
         self._next_due = dict.fromkeys(self.intervals_s, -math.inf)
         self.armed = False
@@ -420,6 +421,14 @@ class Px4Emulator:
             self.last_setpoint_s = t_s
             self.setpoint = VehicleCommand('offboard', tgt.roll_rad, tgt.pitch_rad,
                                            tgt.yaw_rad, tgt.thrust_n)
+        elif kind == 'TIMESYNC':
+            # PX4 (Timesync::handle_time_sync): a request (tc1 == 0) is answered at once with
+            # tc1 = our time (ns) and the request's ts1 echoed; the companion's round trip is
+            # then (its receive time − ts1), through whatever impairs the link
+            if msg.tc1 == 0:
+                self.counters['timesync_rx'] += 1
+                self.mav.timesync_send(max(1, round((t_s - (self._t0_s or 0.0)) * 1e9)),
+                                       msg.ts1)
         elif kind == 'COMMAND_LONG':
             if msg.target_system not in (0, p.system_id):
                 self.rejected['wrong_target'] += 1
