@@ -194,6 +194,7 @@ class World:
         self._fs_next = 0.0
         self._fs_ref = (0.0, 0.0, 0.0, 0.0)
         self._fs_braked = False
+        self._timesync_rng: random.Random | None = None   # made on first use (timesync_rtt_s)
 
     # --- commands and stepping -------------------------------------------------------------
 
@@ -257,6 +258,49 @@ class World:
             return True
         self._deliver(t_s, cmd)
         return True
+
+    def timesync_rtt_s(self, t_s: float) -> float | None:
+        """The simulated MAVLink TIMESYNC: round trip (s) of a request sent at ``t_s`` through
+        the same impaired link as :meth:`command_link`, or None if it is lost.
+
+        Uplink: a ``mavlink_link_loss`` (or ``node_kill`` of the bridge) window cuts it;
+        each active ``mavlink_loss`` drops it with its probability (drawn from the world's own
+        stream ``f'{seed}:timesync'``, so measuring never shifts the command link's draws); the
+        active ``mavlink_latency`` delays it, and it queues behind commands still in flight
+        (FIFO, as the commands). Downlink: telemetry is not delayed in the in-process world
+        (as :class:`deck_simulator.node.ImpairedLink`'s default ``downlink='cut'``), so the
+        reply comes back at once unless a cut is active when it leaves. The autopilot answers
+        at once (PX4 replies to TIMESYNC in its receive thread). Pure apart from that stream;
+        a non-finite ``t_s`` is rejected (``rejected['nan']``, None).
+        """
+        if not math.isfinite(t_s):
+            self.rejected['nan'] += 1
+            return None
+        fs = self.faults
+        if fs is None or not fs.has_link:
+            return 0.0
+        # a killed controller/planner/estimator does not stop the bridge answering TIMESYNC
+        cuts = [a for a in fs.link_cut
+                if a.name == 'mavlink_link_loss' or a.spec.node == 'mavlink_bridge']  # type: ignore
+        for a in cuts:
+            if a.on <= t_s < a.off:
+                return None
+        for a in fs.link_loss:
+            if a.on <= t_s < a.off:
+                if self._timesync_rng is None:
+                    self._timesync_rng = random.Random(f'{self.seed}:timesync')
+                if self._timesync_rng.random() < a.spec.probability:   # type: ignore
+                    return None
+        arrive = t_s
+        for a in fs.link_latency:
+            if a.on <= t_s < a.off and t_s + a.spec.latency_s > arrive:   # type: ignore
+                arrive = t_s + a.spec.latency_s   # type: ignore[attr-defined]
+        if self._queue and self._queue[-1][0] > arrive:
+            arrive = self._queue[-1][0]
+        for a in cuts:   # the reply leaves at `arrive`
+            if a.on <= arrive < a.off:
+                return None
+        return arrive - t_s
 
     def _deliver(self, t_s: float, cmd: tuple[float, float, float, float]) -> None:
         self._last_rx_t = t_s

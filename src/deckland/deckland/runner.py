@@ -10,6 +10,7 @@ below corresponds to one node's callback.
 
 from __future__ import annotations
 
+from bisect import insort
 from dataclasses import asdict, dataclass, field
 import math
 from typing import Any
@@ -22,6 +23,7 @@ from dob_altitude.adapter import altitude_input, make_controller, parse_vertical
 from landing_planner.horizontal import HorizontalController, HorizontalParams
 from landing_planner.planner import LandingPlanner, PlannerParams
 from landing_planner.types import Mode, VehicleState
+from mavlink_bridge.core import LinkMonitor, LinkMonitorParams
 
 CONTROLLERS = ('dob', 'pid', 'constant-rate')
 
@@ -42,6 +44,9 @@ class RunConfig:
     pid_overrides: tuple[tuple[str, float], ...] = ()
     planner_overrides: tuple[tuple[str, float], ...] = ()
     horizontal_overrides: tuple[tuple[str, float], ...] = ()
+    # mavlink_bridge's LinkMonitor on the simulated TIMESYNC (World.timesync_rtt_s): stop
+    # commanding when the link is too slow, the autopilot's failsafe takes over (None: off)
+    link_monitor: LinkMonitorParams | None = field(default_factory=LinkMonitorParams)
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
@@ -78,6 +83,8 @@ class RunResult:
     failsafe_mode: str = ''         # its mode at the end of the run ('' = offboard)
     final_height_m: float = math.nan   # true height above the surface below at the end
     final_speed_mps: float = math.nan  # true speed at the end (3-D)
+    link_degraded_s: float = math.nan  # when the LinkMonitor stopped the commands (NaN: never)
+    link_latency_s: float = math.nan   # its one-way latency estimate at the end
     trace: dict[str, list[float]] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
@@ -119,6 +126,10 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     vframe = 'surface'
     vmode = None   # the planner's last vertical_mode string
     horizontal = HorizontalController(HorizontalParams(**dict(config.horizontal_overrides)))
+    # --- mavlink_bridge's link monitor: TIMESYNC requests through the world's link --------
+    monitor = LinkMonitor(config.link_monitor) if config.link_monitor is not None else None
+    replies: list[tuple[float, float]] = []   # (t_received, t_sent), sorted
+    commanding = True
 
     result = RunResult(seed=seed, scenario=scenario.name, controller=config.controller)
     trace: dict[str, list[float]] = {k: [] for k in TRACE_FIELDS} if config.record else {}
@@ -147,6 +158,15 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
         frame = world.read_camera() if k % cam_div == 0 else None
         if ctrl:
             # --- mavlink_bridge: vehicle state from the autopilot -------------------------
+            if monitor is not None and commanding:
+                while replies and replies[0][0] <= t + 1e-9:
+                    t_rx, t_tx = replies.pop(0)
+                    monitor.on_timesync(t_tx, t_rx)
+                commanding = not monitor.degraded
+                if monitor.poll(t):
+                    rtt = world.timesync_rtt_s(t)
+                    if rtt is not None:
+                        insort(replies, (t + rtt, t))
             pos, vel = world.read_local_position()
             roll, pitch, yaw = world.read_attitude()
             estimator.on_attitude(t, roll, pitch, yaw)
@@ -180,7 +200,8 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                                  roll, pitch, surface_accel_ff=config.surface_accel_ff)
             alt_out = altitude_step(inp, dt_ctrl)
             thrust = alt_out.thrust_n if out.thrust_enabled else 0.0
-            world.command_link(t, roll_cmd, pitch_cmd, out.yaw_rad, thrust)
+            if commanding:   # else the bridge has stopped streaming (LinkMonitor)
+                world.command_link(t, roll_cmd, pitch_cmd, out.yaw_rad, thrust)
             if config.record:
                 truth = world.truth()
                 _record(trace, t, pos, truth, vert, apron, out, alt_out, modes.index(mode))
@@ -212,6 +233,9 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     result.failsafe_mode = world.failsafe or ''
     result.final_height_m = truth.height_above_surface_m
     result.final_speed_mps = math.hypot(*truth.velocity_mps)
+    if monitor is not None:
+        result.link_degraded_s = monitor.degraded_since_s
+        result.link_latency_s = monitor.latency_s
     result.outcome = classify(result, truth.roll_rad, truth.pitch_rad)
     if config.record:
         result.trace = trace
