@@ -33,6 +33,7 @@ from deckland_common.ros_node import (
     run_node,
     stamp_to_s,
 )
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import QuaternionStamped, TwistStamped, WrenchStamped
 from nav_msgs.msg import Odometry
 from pymavlink import mavutil
@@ -51,7 +52,7 @@ from mavlink_bridge.conversions import (
     local_position_ned_to_enu,
     scaled_imu_to_flu,
 )
-from mavlink_bridge.core import BridgeCore, BridgeParams
+from mavlink_bridge.core import BridgeCore, BridgeParams, LinkMonitorParams
 from mavlink_bridge.signing import load_signing_key, verify_signature_first
 
 _load_signing_key = load_signing_key   # the earlier private name
@@ -94,6 +95,14 @@ PARAMS = [
     ParamSpec('base_frame', 'base_link', 'body frame id (FLU)'),
     ParamSpec('lidar_frame', 'lidar_link', 'frame id of vehicle/range'),
     positive('range_field_of_view_rad', 0.008, 'Range.field_of_view (LidarLite v3 beam)'),
+    positive('timesync_period_s', 0.1, 'TIMESYNC request period (link round-trip probe)'),
+    positive('max_link_latency_s', 0.06,
+             'one-way link latency (TIMESYNC rtt / 2) above which setpoints stop streaming so '
+             "that the autopilot's offboard-loss failsafe takes over"),
+    in_range('latency_window', 4, 1, 100,
+             'latency estimate = minimum of this many last one-way samples'),
+    ParamSpec('latency_confirm_s', 0.2, 'the estimate must stay above max_link_latency_s this '
+              'long before streaming stops', lambda v: v >= 0.0, 'must be >= 0'),
 ]
 
 
@@ -114,7 +123,10 @@ class MavlinkBridgeNode(Node):
                 max_stream_rate_hz=cfg['max_stream_rate_hz'], stream_burst=cfg['stream_burst'],
                 fresh_period_s=cfg['fresh_period_s'],
                 offboard_warmup_s=cfg['offboard_warmup_s'],
-                target_component=cfg['target_component'], thrust=calib))
+                target_component=cfg['target_component'], thrust=calib,
+                link_monitor=LinkMonitorParams(
+                    period_s=cfg['timesync_period_s'], max_latency_s=cfg['max_link_latency_s'],
+                    window=cfg['latency_window'], confirm_s=cfg['latency_confirm_s'])))
         except ValueError as exc:
             raise ParameterError(str(exc)) from exc
         self._lock = threading.Lock()
@@ -157,7 +169,10 @@ class MavlinkBridgeNode(Node):
             self.create_subscription(Odometry, 'apron/odom', self._on_apron, SENSOR_QOS)
         self.create_service(SetBool, 'bridge/arm', self._srv_arm)
         self.create_service(Trigger, 'bridge/offboard', self._srv_offboard)
+        self.pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', RELIABLE_QOS)
         self.create_timer(0.02, self._on_timer)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self._degraded_logged = False
         self._running = True
         self._reader = threading.Thread(target=self._read_loop, name='mavlink_reader',
                                         daemon=True)
@@ -229,6 +244,9 @@ class MavlinkBridgeNode(Node):
         elif kind == 'COMMAND_ACK':
             with self._lock:
                 self.core.on_command_ack(now, msg.command, msg.result)
+        elif kind == 'TIMESYNC':
+            with self._lock:
+                self.core.on_timesync(now, int(msg.tc1), int(msg.ts1))
         elif kind == 'PARAM_VALUE':
             with self._lock:
                 self.core.on_param_value(msg.param_id, msg.param_value)
@@ -405,6 +423,38 @@ class MavlinkBridgeNode(Node):
                 elif o.kind == 'param_request':
                     self._send(self.conn.mav.param_request_read_send, ts, tc,
                                o.param_id.encode('ascii'), -1)
+                elif o.kind == 'timesync':
+                    self._send(self.conn.mav.timesync_send, 0, round(o.params[0] * 1e9))
+            mon = self.core.link_monitor
+            degraded, reason = mon.degraded, mon.reason
+        if degraded and not self._degraded_logged:
+            self.get_logger().error(reason)
+        self._degraded_logged = degraded
+
+    def _publish_diagnostics(self) -> None:
+        """1 Hz: the link monitor (latency, degraded and why) and the stream counters."""
+        with self._lock:
+            mon = self.core.link_monitor
+            lat, rtt, degraded, reason = mon.latency_s, mon.rtt_s, mon.degraded, mon.reason
+            counters = dict(self.core.counters)
+            counters.update({f'timesync_{k}': v for k, v in mon.counters.items()})
+            counters.update({f'timesync_rejected_{k}': v for k, v in mon.rejected.items()})
+            mode, last = self.core.mode, self.core.last_result
+        st = DiagnosticStatus(name='mavlink_bridge: link', hardware_id='mavlink')
+        if degraded:
+            st.level, st.message = DiagnosticStatus.ERROR, reason
+        elif math.isnan(lat):
+            st.level, st.message = DiagnosticStatus.WARN, 'no TIMESYNC reply yet'
+        else:
+            st.level, st.message = DiagnosticStatus.OK, f'latency {lat * 1e3:.0f} ms'
+        vals = {'latency_ms': f'{lat * 1e3:.1f}', 'rtt_ms': f'{rtt * 1e3:.1f}',
+                'degraded': str(degraded), 'mode': mode, 'last_result': last}
+        vals.update({k: str(v) for k, v in counters.items()})
+        st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.pub_diag.publish(arr)
 
     def destroy_node(self) -> None:
         self._running = False
