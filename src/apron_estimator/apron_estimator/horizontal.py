@@ -426,10 +426,16 @@ class HorizontalTracker:
         kf.predict(t_s - self.t_filter, self.params.accel_psd_m2ps3, dpx, dvx, dpy, dvy)
         self.t_filter = t_s
         best, best_nis = None, math.inf
+        rejected = [rv for rv in self.rivals if rv.rejected] if self.rivals else None
         for c in good:
             nis = kf.nis(c[0], c[1], r)
-            if nis < best_nis:
+            if nis < best_nis and not (rejected and self._explained(c, nis, r, rejected)):
                 best, best_nis = c, nis
+        if best is None:
+            # every detection sits where a rejected rival is expected: none is the track's
+            self.rejected['gated'] += len(good)
+            self._seen_rejected(t_s, good, rejected)
+            return False
         if best_nis > self.params.nis_gate:
             self.rejected['gated'] += len(good)
             if self.mode == 'acquiring':
@@ -454,6 +460,33 @@ class HorizontalTracker:
         return True
 
     # -- rivals (false blobs) ----------------------------------------------------------------
+    def _explained(self, c: tuple[float, float], nis_track: float, r: float,
+                   rejected: list[_Rival]) -> bool:
+        """True if detection ``c`` is closer (NIS) to where a rejected rival is expected
+        (track estimate + its offset) than to the track: it must not update the track.
+
+        Without this the track slides onto a rejected glint whenever the beacon leaves the
+        image and the track's variance grows (README "False blobs", seed 100031)."""
+        kf = self.kf
+        for rv in rejected:
+            nx = c[0] - kf.px - rv.dx
+            ny = c[1] - kf.py - rv.dy
+            if nx * nx / (kf.ax + r) + ny * ny / (kf.ay + r) < nis_track:
+                return True
+        return False
+
+    def _seen_rejected(self, t_s: float, good: list[tuple[float, float]],
+                       rejected: list[_Rival]) -> None:
+        """A frame that shows only rejected rivals keeps them alive (no offset update: the
+        track was not seen in it)."""
+        kf = self.kf
+        gate2 = self.params.rival_gate_m * self.params.rival_gate_m
+        for c in good:
+            for rv in rejected:
+                if (c[0] - kf.px - rv.dx) ** 2 + (c[1] - kf.py - rv.dy) ** 2 < 4.0 * gate2:
+                    rv.t_seen = t_s
+                    break
+
     def _rivals(self, t_s: float, good: list[tuple[float, float]],
                 best: tuple[float, float], surface_m: float | None) -> None:
         """Associate the unexplained detections with rivals, sample the surface under the
@@ -512,8 +545,10 @@ class HorizontalTracker:
             if self.surface > rv.surface + p.deck_rise_m:
                 rv.rejected = True
                 self.events['rivals_rejected'] += 1
-        open_ = [rv for rv in rivals if not rv.rejected and rv.hits >= p.rival_confirm_hits
-                 and rv.dx * rv.dx + rv.dy * rv.dy > sep2]
+        # a switch replaces self.rivals: re-read it (a stale list kept the switched-to rival
+        # open and the target ambiguous after the switch)
+        open_ = [rv for rv in self.rivals if not rv.rejected
+                 and rv.hits >= p.rival_confirm_hits and rv.dx * rv.dx + rv.dy * rv.dy > sep2]
         if open_ and self.surface is not None:
             unvisited = [rv for rv in open_ if rv.surface is None]
             if unvisited:
