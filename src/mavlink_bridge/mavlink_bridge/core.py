@@ -284,12 +284,15 @@ class LinkMonitor:
     def poll(self, t_s: float) -> bool:
         """True when a TIMESYNC request is due at ``t_s``; the caller then sends one with
         ``ts1 = t_s`` (it is remembered as outstanding)."""
-        if t_s < self._next_s:   # the common case first (NaN fails both tests below)
+        if t_s < self._next_s - 1e-9:   # the common case first (NaN fails both tests)
             return False
         if not math.isfinite(t_s):
             self.rejected['nan'] += 1
             return False
-        self._next_s = t_s + self.params.period_s
+        # on the fixed schedule (no drift from the caller's tick); re-anchored after a gap
+        period = self.params.period_s
+        nxt = self._next_s + period
+        self._next_s = nxt if nxt > t_s else t_s + period
         out = self._outstanding
         out.append(t_s)
         if len(out) > self.params.max_outstanding:
