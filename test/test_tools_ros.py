@@ -94,7 +94,8 @@ def read_ticks(bag_dir):
 
 
 def args_for(verb, **kw):
-    ns = argparse.Namespace(timeout=5.0, count=None, duration=None, qos='auto', csv=False,
+    # duration bounds every wait: a lost publisher fails the test instead of hanging it
+    ns = argparse.Namespace(timeout=5.0, count=None, duration=20.0, qos='auto', csv=False,
                             window=10000, out=io.StringIO(), err=io.StringIO(), topic=None)
     for k, v in kw.items():
         setattr(ns, k, v)
