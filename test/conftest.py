@@ -23,6 +23,20 @@ settings.load_profile('deckland')
 sys.dont_write_bytecode = True
 
 
+_SESSION_DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
+
+
+def isolated_env(**extra: str) -> dict:
+    """Environment for a subprocess graph: its own ROS domain, apart from this session's.
+
+    A whole graph started by a test (``deckland up``, a bench) must not hear another test's
+    nodes (e.g. a latched ``sim/outcome`` of a simulator another test has not yet torn down).
+    """
+    domain = random.SystemRandom().choice(
+        [d for d in range(101, 201) if d != _SESSION_DOMAIN])
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1', **extra)
+
+
 @pytest.fixture
 def ros_context():
     """A private rclpy context with a multi-threaded executor spinning in a thread.

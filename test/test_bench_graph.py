@@ -9,6 +9,7 @@ import sys
 import threading
 import time
 
+from conftest import isolated_env
 from deckland.bench import set_attitude_target_boot_ms, stamp_ms
 import pytest
 
@@ -98,7 +99,7 @@ def test_short_bench_run_writes_finite_positive_figures(tmp_path):
     proc = subprocess.run(
         [sys.executable, '-m', 'deckland.bench', 'latency', '--duration', '5', '--out',
          str(out), '--log', str(tmp_path / 'graph.log'), '--startup-timeout', '12'],
-        capture_output=True, text=True, timeout=40)
+        capture_output=True, text=True, timeout=40, env=isolated_env())
     assert out.exists(), proc.stdout + proc.stderr
     r = json.loads(out.read_text())
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -5,11 +5,11 @@ crash. Checked from report.json (written by up.py from the simulator's outcome, 
 modes seen on vehicle/mode and the orchestrator's events) and the recorded bag."""
 
 import json
-import os
 import pathlib
 import subprocess
 import sys
 
+from conftest import isolated_env
 from deck_simulator.scenario import load_scenario
 from deckland.bag import bag_info
 
@@ -22,7 +22,7 @@ def test_node_kill_of_the_altitude_controller_ends_in_a_failsafe_landing(tmp_pat
     run = tmp_path / 'run'
     res = subprocess.run([DECKLAND, 'up', '--scenario', 'fault_node_kill', '--record', str(run),
                           '--timeout', '45'], capture_output=True, text=True, timeout=60,
-                         env=dict(os.environ, PYTHONUNBUFFERED='1'))
+                         env=isolated_env())
     log = res.stdout + res.stderr
     report = json.loads((run / 'report.json').read_text())
     # the kill happened on time and is not counted as a crash

@@ -5,12 +5,12 @@ exit status 0, ``report.json`` says success, and the bag is readable and holds t
 
 import json
 import math
-import os
 import pathlib
 import subprocess
 import sys
 import time
 
+from conftest import isolated_env
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -25,7 +25,7 @@ def test_deckland_up_paper_lands_in_real_time(tmp_path):
     t0 = time.monotonic()
     res = subprocess.run([DECKLAND, 'up', '--scenario', 'paper', '--record', str(run),
                           '--timeout', '90'], capture_output=True, text=True, timeout=120,
-                         env=dict(os.environ, PYTHONUNBUFFERED='1'))
+                         env=isolated_env())
     wall_s = time.monotonic() - t0
     log = res.stdout[-4000:] + res.stderr[-4000:]
     assert res.returncode == 0, log

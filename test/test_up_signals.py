@@ -3,7 +3,6 @@ is gone within 5 s, the exit status is 143 (128 + SIGTERM, README-up.md), and th
 recorded is finished and readable, with report.json saying why the run ended."""
 
 import json
-import os
 import pathlib
 import re
 import signal
@@ -11,6 +10,7 @@ import subprocess
 import sys
 import time
 
+from conftest import isolated_env
 from deckland.bag import bag_info, is_recording, needs_reindex
 
 DECKLAND = str(pathlib.Path(sys.executable).with_name('deckland'))
@@ -30,7 +30,7 @@ def test_sigterm_stops_every_child_within_5_s_and_finishes_the_bag(tmp_path):
     with open(log, 'w') as out:
         proc = subprocess.Popen([DECKLAND, 'up', '--scenario', 'paper', '--record', str(run),
                                  '--timeout', '60'], stdout=out, stderr=subprocess.STDOUT,
-                                env=dict(os.environ, PYTHONUNBUFFERED='1'))
+                                env=isolated_env())
     try:
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline and 'start_landing:' not in log.read_text():

@@ -112,6 +112,20 @@ ESTIMATOR_DESCRIPTIONS = {
     'horizontal.use_accel_input': 'drive the KF with u = -vehicle acceleration (beyond the '
                                   'paper)',
     'horizontal.accel_history_s': 'acceleration history kept (>= lost_timeout_s)',
+    'horizontal.rival_gate_m': 'false blobs: a detection this close (m) to a rival is that rival',
+    'horizontal.rival_confirm_hits': 'false blobs: detections before a rival makes the target '
+                                     'ambiguous',
+    'horizontal.rival_timeout_s': 'false blobs: an unresolved rival unseen this long (s) is '
+                                  'dropped',
+    'horizontal.rejected_rival_timeout_s': 'false blobs: a rejected rival is remembered this '
+                                           'long (s)',
+    'horizontal.ambiguity_min_sep_m': 'false blobs: rivals closer (m) than this to the track do '
+                                      'not matter',
+    'horizontal.verify_radius_m': 'false blobs: vehicle this close (m) over a hypothesis → '
+                                  'lidar surface sample',
+    'horizontal.verify_dwell_s': 'false blobs: hover this long (s) before sampling',
+    'horizontal.deck_rise_m': "false blobs: the beacon's surface is higher by at least this (m)",
+    'horizontal.max_rivals': 'false blobs: rival hypotheses kept at most',
     'vertical.sigma_lidar_m': 'lidar sigma',
     'vertical.sigma_altitude_m': 'local position z sigma (GPS/EKF)',
     'vertical.sigma_vz_mps': 'local velocity z sigma',

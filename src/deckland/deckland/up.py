@@ -65,7 +65,7 @@ class MissionMonitor:
     owns SIGINT/SIGTERM); the bag recorder borrows it.
     """
 
-    def __init__(self, wait_topics: list[str]):
+    def __init__(self, wait_topics: list[str], expect: dict[str, Any] | None = None):
         from deckland_common.ros_node import LATCHED_QOS
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
@@ -80,6 +80,10 @@ class MissionMonitor:
         self.executor.add_node(self.node)
         self.counts = dict.fromkeys(wait_topics, 0)
         self.outcome: dict | None = None
+        #: identity of the simulation this run started ({'scenario', 'seed'}): an outcome
+        #: from another graph on the same ROS domain is ignored, not taken as ours
+        self.expect = dict(expect or {})
+        self.foreign_outcomes = 0
         self.mode = ''
         self.vehicle_modes: list[tuple[float, str]] = []   # (monotonic s, autopilot mode)
         self._subs: dict[str, Any] = {}
@@ -121,9 +125,17 @@ class MissionMonitor:
 
     def _on_outcome(self, msg) -> None:
         try:
-            self.outcome = json.loads(msg.data)
+            outcome = json.loads(msg.data)
         except ValueError:
             self.outcome = {'reason': f'unparsable outcome: {msg.data[:80]}'}
+            return
+        if not isinstance(outcome, dict):
+            self.outcome = {'reason': f'unparsable outcome: {msg.data[:80]}'}
+            return
+        if any(outcome.get(k) != v for k, v in self.expect.items()):
+            self.foreign_outcomes += 1   # another graph shares this ROS domain
+            return
+        self.outcome = outcome
 
     def _on_mode(self, msg) -> None:
         self.mode = msg.data
@@ -315,7 +327,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
     injected: list[dict[str, Any]] = []
     try:
         orch.start()
-        monitor = MissionMonitor(graph.get('wait_for_topics', []))
+        expect = {} if scenario is None else {'scenario': scenario.name, 'seed': args.seed}
+        monitor = MissionMonitor(graph.get('wait_for_topics', []), expect=expect)
 
         def startup_abort() -> bool:
             orch.check()
