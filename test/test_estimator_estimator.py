@@ -290,3 +290,15 @@ def test_surface_rebase_rescales_the_horizontal_estimate():
     assert est.horizontal.events['rescaled'] == 1
     assert est.rejected['horizontal.gated'] == 0
     assert est.horizontal.events['lost'] == 0
+
+
+def test_decode_apron_array_accepts_the_layout_and_names_each_rejection():
+    """The one decoder the altitude and planner nodes share for `apron/state`."""
+    from apron_estimator.types import APRON_STATE_LAYOUT, ApronState, decode_apron_array
+    good = ApronState.untracked(12.5).to_array()
+    for label in (APRON_STATE_LAYOUT, None):
+        state, reason, _ = decode_apron_array(label, good)
+        assert state is not None and state.t_s == 12.5 and reason == ''
+    assert decode_apron_array('other_v9', good)[1] == 'bad_layout'
+    assert decode_apron_array(None, good[:-3])[1] == 'bad_size'
+    assert decode_apron_array(None, [float('nan')] * len(good))[1] == 'non_finite'

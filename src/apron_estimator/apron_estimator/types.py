@@ -149,3 +149,20 @@ class ApronState:
             rel_position_var_m2=(a[9], a[10]), rel_position_body_m=(a[11], a[12]),
             rel_velocity_body_mps=(a[13], a[14]), apron_position_m=(a[15], a[16]),
             apron_velocity_mps=(a[17], a[18]), vertical=vertical, camera_stamp_s=a[1])
+
+
+def decode_apron_array(label: str | None, data) -> tuple[ApronState | None, str, str]:
+    """Decode an ``apron/state`` array for a consumer node: ``(state, reason, detail)``.
+
+    ``state`` is None when the message must be rejected; ``reason`` is then the counter name
+    (``'bad_layout'``, ``'bad_size'`` or ``'non_finite'``) and ``detail`` what to log. A
+    missing layout label is accepted (the size decides); a different label is not.
+    """
+    if label is not None and label != APRON_STATE_LAYOUT:
+        return None, 'bad_layout', f'apron/state (layout {label!r})'
+    try:
+        return ApronState.from_array(data), '', ''
+    except ValueError as exc:
+        return None, 'non_finite' if 'NaN' in str(exc) else 'bad_size', f'apron/state: {exc}'
+    except OverflowError:  # an infinite surface_epoch cannot be rounded to an int
+        return None, 'non_finite', 'apron/state (surface_epoch)'

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import math
 import sys
 
-from apron_estimator.types import APRON_STATE_LAYOUT, ApronState
+from apron_estimator.types import ApronState, decode_apron_array
 from deckland_common.checks import stamp_verdict
 from deckland_common.frames import quaternion_to_euler
 from deckland_common.params import ParameterError, ParamSpec, in_range, one_of, positive
@@ -195,16 +195,9 @@ class DobAltitudeNode(Node):
 
     def _on_apron(self, msg: Float64MultiArray) -> None:
         dims = msg.layout.dim
-        if dims and dims[0].label != APRON_STATE_LAYOUT:
-            self._reject('bad_layout', f'apron/state (layout {dims[0].label!r})')
-            return
-        try:
-            state = ApronState.from_array(msg.data)
-        except ValueError as exc:
-            self._reject('non_finite' if 'NaN' in str(exc) else 'bad_size', f'apron/state: {exc}')
-            return
-        except OverflowError:  # an infinite surface_epoch cannot be rounded to an int
-            self._reject('non_finite', 'apron/state (surface_epoch)')
+        state, reason, detail = decode_apron_array(dims[0].label if dims else None, msg.data)
+        if state is None:
+            self._reject(reason, detail)
             return
         v = state.vertical
         if not all_finite(state.t_s, v.height_m, v.closing_speed_mps, v.vehicle_altitude_m,

@@ -43,7 +43,7 @@ from dataclasses import fields
 import math
 import sys
 
-from apron_estimator.types import APRON_STATE_LAYOUT, ApronState
+from apron_estimator.types import ApronState, decode_apron_array
 from deckland_common.checks import stamp_verdict
 from deckland_common.frames import euler_to_quaternion, quaternion_to_euler
 from deckland_common.params import ParameterError, ParamSpec, one_of, positive
@@ -327,16 +327,9 @@ class LandingPlannerNode(Node):
 
     def _on_apron(self, msg: Float64MultiArray) -> None:
         dims = msg.layout.dim
-        if dims and dims[0].label != APRON_STATE_LAYOUT:
-            self._reject('bad_layout', f'apron/state (layout {dims[0].label!r})')
-            return
-        try:
-            st = ApronState.from_array(msg.data)
-        except ValueError as exc:
-            self._reject('non_finite' if 'NaN' in str(exc) else 'bad_size', f'apron/state: {exc}')
-            return
-        except OverflowError:  # an infinite surface_epoch cannot be rounded to an int
-            self._reject('non_finite', 'apron/state (surface_epoch)')
+        st, reason, detail = decode_apron_array(dims[0].label if dims else None, msg.data)
+        if st is None:
+            self._reject(reason, detail)
             return
         v = st.vertical
         # everything the planner reads must be finite (time_since_seen_s and camera_stamp_s
