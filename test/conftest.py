@@ -39,17 +39,25 @@ def isolated_env(**extra: str) -> dict:
 
 @pytest.fixture
 def ros_context():
-    """A private rclpy context with a multi-threaded executor spinning in a thread.
+    """A private rclpy context with a single-threaded executor spinning in a thread.
 
     Yields ``(context, executor)``; add nodes with ``executor.add_node(node)``. Teardown
     shuts the executor and the context down and joins the thread.
+
+    Single-threaded on purpose. rclpy 7.1's MultiThreadedExecutor, with a node under test and a
+    helper publishing at 100 Hz in one process, spent ~93 % of a core on dispatch and fired the
+    helper's 10 ms timer 19-68 times in 3 s (300 expected); the SingleThreadedExecutor fired it
+    300 times at ~34 % of a core (measured 2026-11-22, same machine, same nodes). The starvation
+    depended on machine load, which is why these tests passed on some runs and not others.
+    Test code blocks only in the test thread (``wait_for`` on futures), never in a callback, so
+    one executor thread is enough.
     """
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
 
     context = rclpy.Context()
     rclpy.init(context=context)
-    executor = MultiThreadedExecutor(context=context)
+    executor = SingleThreadedExecutor(context=context)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
     try:

@@ -140,9 +140,6 @@ def make_node(context, executor, **params):
     return node
 
 
-@pytest.mark.xfail(strict=False, reason='known issue: the in-process 100 Hz test helper '
-                   'is timer-starved on the long-running dev machine (the same commit '
-                   'passed earlier); runs and reports, does not gate CI until fixed')
 def test_hover_below_reference_commands_law_16_above_hover_thrust(ros_context):
     context, executor = ros_context
     node = make_node(context, executor)
@@ -177,9 +174,6 @@ def test_hover_below_reference_commands_law_16_above_hover_thrust(ros_context):
     assert int(values['steps']) > 0
 
 
-@pytest.mark.xfail(strict=False, reason='known issue: the in-process 100 Hz test helper '
-                   'is timer-starved on the long-running dev machine (the same commit '
-                   'passed earlier); runs and reports, does not gate CI until fixed')
 def test_stale_apron_state_stops_thrust_and_observer_restarts(ros_context):
     context, executor = ros_context
     node = make_node(context, executor, input_timeout_s=0.2)
@@ -205,9 +199,6 @@ def test_stale_apron_state_stops_thrust_and_observer_restarts(ros_context):
     assert node.counts['resets'] >= 1
 
 
-@pytest.mark.xfail(strict=False, reason='known issue: the in-process 100 Hz test helper '
-                   'is timer-starved on the long-running dev machine (the same commit '
-                   'passed earlier); runs and reports, does not gate CI until fixed')
 def test_nan_and_malformed_apron_state_rejected_never_published(ros_context):
     context, executor = ros_context
     node = make_node(context, executor)
@@ -268,9 +259,6 @@ def test_pid_is_selectable_with_gain_overrides(ros_context):
     assert ki == PidParams.profile('default').ki    # profile value kept where not overridden
 
 
-@pytest.mark.xfail(strict=False, reason='known issue: the in-process 100 Hz test helper '
-                   'is timer-starved on the long-running dev machine (the same commit '
-                   'passed earlier); runs and reports, does not gate CI until fixed')
 def test_disabled_publishes_nothing_and_world_frame_reference(ros_context):
     from std_msgs.msg import Bool
     context, executor = ros_context

@@ -4,16 +4,11 @@ their outputs are compared with the recording within NODE_TOLERANCES."""
 
 from pathlib import Path
 
-import pytest
-
 from deckland import golden
 
 BAG = Path(__file__).parent / 'fixtures' / 'golden_paper'
 
 
-@pytest.mark.xfail(strict=False, reason='known issue: the node replay (DDS timing) '
-                   'is timer-starved on the long-running dev machine (the same commit '
-                   'passed earlier); runs and reports, does not gate CI until fixed')
 def test_nodes_reproduce_the_recording(ros_context):
     context, executor = ros_context
     replayed, offset_s = golden.replay_nodes(BAG, context, executor)

@@ -74,8 +74,6 @@ def collect(helper, cls, topic, qos):
     return got
 
 
-@pytest.mark.xfail(strict=False, reason='known issue: ros_context harness timer starvation '
-                   'on the long-running dev machine (see the dob-node tests); runs and reports')
 def test_truth_pixy_mavlink_hold_and_timeout_outcome(sim):
     from deckland_common.frames import quaternion_to_euler
     from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS

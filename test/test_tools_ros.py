@@ -104,9 +104,6 @@ def args_for(verb, **kw):
 
 # ------------------------------------------------------------------------------------ topic
 
-@pytest.mark.xfail(strict=False, reason='known issue: in-process publisher timers of the '
-                   'ros_context harness are starved on the long-running dev machine '
-                   '(same family as the dob-node tests); runs and reports')
 def test_topic_echo_hz_and_list_against_a_50hz_publisher(ros_context):
     context, executor = ros_context
     talker = Talker(context, executor)
