@@ -129,6 +129,9 @@ class Helper:
             self.pub[kind].publish(msg)
 
     def _run(self):
+        # absolute deadlines (a real camera and autopilot stream at a steady rate; sleeping a
+        # period after the work would run the 50 Hz stream several % slow)
+        deadline = time.monotonic()
         while not self._stop.is_set():
             t = self.now_s()
             x, y = self.vehicle_xy
@@ -174,7 +177,11 @@ class Helper:
                 self._send('blocks', pc)
             with self.lock:
                 self.sent_t_s = t
-            time.sleep(self.period_s)
+            deadline += self.period_s
+            now = time.monotonic()
+            if deadline < now - self.period_s:
+                deadline = now            # stalled (shared machine): restart the grid
+            time.sleep(max(0.0, deadline - now))
 
 
 @pytest.fixture
@@ -456,6 +463,8 @@ def test_every_estimator_field_is_a_parameter():
     ('input_timeout_s', -1.0, r"'input_timeout_s'.*> 0"),
     ('beacon_signature', -2, r"'beacon_signature'"),
     ('map_frame', ' ', r"'map_frame'.*empty"),
+    ('clock', 'timer', r"'clock'.*one of"),
+    ('loop_max_wait_s', 0.0005, r'max_wait_s must be in \[lead_s'),   # below loop_lead_s
     ('camera.fov_y_deg', 'wide', r'camera.fov_y_deg'),   # wrong type
     ('camera.fov_x_deg', 60, r"'camera.fov_x_deg'.*INTEGER.*DOUBLE"),  # int for a float
 ])
@@ -487,10 +496,10 @@ def _count_imu(helper):
 
 
 def test_each_imu_message_publishes_one_state(make):
-    """The autopilot's attitude stream is the clock: with the camera silent, every accepted
-    vehicle/imu message (50 Hz here, rate_hz 50 → thinning below 10 ms only) publishes one
-    state, stamped at its arrival, and t_s strictly increases."""
-    node, helper = make({'input_timeout_s': 2.0})
+    """clock=imu: the autopilot's attitude stream is the clock: with the camera silent, every
+    accepted vehicle/imu message (50 Hz here, rate_hz 50 → thinning below 10 ms only) publishes
+    one state, stamped at its arrival, and t_s strictly increases."""
+    node, helper = make({'input_timeout_s': 2.0, 'clock': 'imu'})
     assert wait_tracked(helper)
     helper.enabled['blocks'] = False
     helper.enabled['imu'] = False      # quiet: nothing in flight when the window opens
@@ -514,13 +523,13 @@ def test_each_imu_message_publishes_one_state(make):
 
 
 def test_a_camera_frame_is_published_at_once_not_at_the_next_imu_tick(make):
-    """rate_hz 1 thins the IMU-triggered states to one per 0.5 s (the 50 Hz attitude still
-    reaches the core). Five camera frames 30 ms apart then give five states, each carrying its
-    own frame's stamp: every frame was published when processed, not at the next IMU tick
-    (an IMU-clocked-only node would carry at most two of them)."""
+    """clock=imu. rate_hz 1 thins the IMU-triggered states to one per 0.5 s (the 50 Hz
+    attitude still reaches the core). Five camera frames 30 ms apart then give five states,
+    each carrying its own frame's stamp: every frame was published when processed, not at the
+    next IMU tick (an IMU-clocked-only node would carry at most two of them)."""
     from geometry_msgs.msg import Point32
     from sensor_msgs.msg import ChannelFloat32, PointCloud
-    node, helper = make({'rate_hz': 1.0, 'input_timeout_s': 2.0})
+    node, helper = make({'rate_hz': 1.0, 'input_timeout_s': 2.0, 'clock': 'imu'})
     assert wait_tracked(helper)
     helper.enabled['blocks'] = False
     time.sleep(0.3)
@@ -556,3 +565,45 @@ def test_main_exits_2_on_an_unknown_executor(monkeypatch, capsys):
     monkeypatch.setenv('DECKLAND_EXECUTOR', 'multi')
     assert main([]) == 2
     assert 'DECKLAND_EXECUTOR' in capsys.readouterr().err
+
+
+def test_loop_clock_publishes_at_its_rate_not_per_imu_message(make):
+    """clock=loop (default): with the camera silent the states come from the loop thread at
+    rate_hz (50 here), on absolute deadlines: stamps ~20 ms apart, none bunched, and no IMU
+    message triggers a publication (the attitude stream only feeds the core)."""
+    node, helper = make({'input_timeout_s': 2.0})
+    assert node.loop is not None
+    assert wait_tracked(helper)
+    helper.enabled['blocks'] = False
+    time.sleep(0.3)
+    n0, trig0 = len(helper.got('state')), dict(node.triggers)
+    time.sleep(1.0)
+    ts = [state_of(m).t_s for _, m in helper.got('state')[n0:]]
+    assert node.triggers['imu'] == trig0['imu'] == 0
+    assert node.triggers['camera'] == trig0['camera']
+    assert node.triggers['loop'] - trig0['loop'] >= len(ts) - 1
+    gaps = sorted(b - a for a, b in itertools.pairwise(ts))
+    assert len(gaps) >= 20
+    assert gaps[len(gaps) // 2] == pytest.approx(0.02, abs=0.002)   # median period
+    assert gaps[0] > 0.012                     # nothing published between ticks
+
+
+def test_loop_clock_carries_every_camera_frame(make):
+    """clock=loop with the 50 Hz camera: every processed frame reaches apron/state — by the
+    tick it locked onto or at once — and the outputs stay near the loop rate (a frame does not
+    add a state per frame once locked)."""
+    node, helper = make({'input_timeout_s': 2.0})
+    assert wait_tracked(helper)
+    time.sleep(1.0)                            # lock (<= 25 frames)
+    n0, trig0 = len(helper.got('state')), dict(node.triggers)
+    frames0 = node.loop.events
+    time.sleep(1.5)
+    states = [state_of(m) for _, m in helper.got('state')[n0:]]
+    frames = node.loop.events - frames0
+    assert frames >= 20
+    carried = {round(s.camera_stamp_s, 6) for s in states}
+    assert len(carried) >= frames - 2          # the window's edges
+    loop_states = node.triggers['loop'] - trig0['loop']
+    at_once = node.triggers['camera'] - trig0['camera']
+    assert loop_states + at_once >= len(states) - 1
+    assert at_once <= frames // 2              # most frames ride a tick

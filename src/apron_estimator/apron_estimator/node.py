@@ -13,14 +13,18 @@ Inputs (each message's ``header.stamp`` is its ``t_s``, in the node clock's doma
 * ``vehicle/range`` → ``on_lidar`` (±inf / outside [min_range, max_range] → None);
 * ``pixy/blocks`` → ``on_camera`` (stamp = exposure time set by the driver).
 
-Event-driven output (no free-running timer): ``state(now)`` is published
+When ``state(now)`` is published (``clock`` parameter; planner and altitude loop step on each
+``apron/state``, so this is the clock of the whole control chain):
 
-* on each accepted ``vehicle/imu`` message — the autopilot's ~100 Hz attitude stream is the
-  control clock of the whole chain (planner and altitude loop step on each ``apron/state``) —
-  unless the previous IMU-triggered publication is less than ``0.5 / rate_hz`` old (a bunched
-  or faster IMU stream is thinned to the control rate);
-* at once after each accepted ``pixy/blocks`` frame has been processed, so a new image reaches
-  the commands without waiting for the next IMU message.
+* ``loop`` (default): a thread ticks at ``rate_hz`` on absolute deadlines, phase-locked to the
+  camera (:class:`deckland_common.loop_clock.PhaseLockedLoop`): each processed ``pixy/blocks``
+  frame nudges the phase (at most ``loop_max_slew_s``) so that ticks fall ``loop_lead_s``
+  after the frames; a frame that would wait longer than ``loop_max_wait_s`` for its tick (while
+  locking, or a late frame) is published at once as well. Regular 100 Hz output with a fresh
+  frame every other tick after a wait of ``loop_lead_s``.
+* ``imu``: event-driven, as before the loop existed (and for replays with recorded timing):
+  on each accepted ``vehicle/imu`` message unless the previous IMU-triggered publication is
+  less than ``0.5 / rate_hz`` old, and at once after each accepted ``pixy/blocks`` frame.
 
 Each publication is ``apron/state`` (``apron_state_v1``), ``apron/visible``, ``apron/odom``
 (while tracked, unless ``odom_when_untracked``) and ``apron/relative`` /
@@ -35,11 +39,15 @@ from __future__ import annotations
 
 from array import array
 from dataclasses import MISSING, fields
+import functools
 import math
 import re
 import sys
+import threading
+import time
 
 from deckland_common.frames import quaternion_to_euler
+from deckland_common.loop_clock import PhaseLockedLoop, PhaseLockParams
 from deckland_common.params import ParameterError, ParamSpec, in_range, one_of, positive
 from deckland_common.ros_node import (
     RELIABLE_QOS,
@@ -180,10 +188,20 @@ def _nonempty(name: str, default: str, description: str) -> ParamSpec:
 
 NODE_PARAMS = [
     ParamSpec('rate_hz', 100.0,
-              'control rate: a vehicle/imu message publishes the state unless the previous '
-              'IMU-triggered publication is less than 0.5/rate_hz old (camera frames always '
-              'publish at once)',
+              'control rate: the loop rate (clock=loop), or the IMU thinning rate (clock=imu: '
+              'an IMU message publishes unless the previous IMU-triggered publication is less '
+              'than 0.5/rate_hz old)',
               lambda v: 1.0 <= v <= 1000.0, 'must be in [1, 1000]'),
+    one_of('clock', 'loop', ('loop', 'imu'),
+           "what publishes apron/state: 'loop' = a rate_hz loop phase-locked to the camera "
+           "frames; 'imu' = each vehicle/imu message and each camera frame (event-driven)"),
+    in_range('loop_lead_s', 0.001, 0.0, 0.004,
+             'clock=loop: wanted time from a processed camera frame to the next tick'),
+    in_range('loop_max_slew_s', 0.0002, 0.0, 0.001,
+             'clock=loop: largest phase correction per camera frame (period change)'),
+    in_range('loop_max_wait_s', 0.003, 0.0, 0.009,
+             'clock=loop: a frame further than this before its tick is published at once; '
+             'must be >= loop_lead_s'),
     positive('input_timeout_s', 0.5,
              'inputs older (or newer) than this vs the node clock are rejected; no output '
              'while vehicle/imu or the local position is this stale'),
@@ -220,6 +238,15 @@ def estimator_params_from(values: dict) -> EstimatorParams:
         raise ParameterError(f'parameter {name!r}: {text}') from exc
 
 
+def _locked(method):
+    """Run a callback under the node's lock (the loop thread steps the same estimator)."""
+    @functools.wraps(method)
+    def wrapper(self, *args):
+        with self._lock:
+            return method(self, *args)
+    return wrapper
+
+
 class ApronEstimatorNode(Node):
     """The ``apron_estimator`` node; interface tables in the package README (section Node)."""
 
@@ -253,7 +280,7 @@ class ApronEstimatorNode(Node):
         self.withheld: dict[str, int] = {'no_attitude': 0, 'no_position': 0,
                                          'non_finite_output': 0, 'clock_not_advancing': 0}
         #: publications by trigger; IMU messages not publishing (closer than 0.5/rate_hz)
-        self.triggers: dict[str, int] = {'imu': 0, 'camera': 0, 'imu_thinned': 0}
+        self.triggers: dict[str, int] = {'imu': 0, 'camera': 0, 'imu_thinned': 0, 'loop': 0}
         self.published = 0
         self._t_published = -math.inf      # t_s of the last published state
         self._t_imu_published = -math.inf  # node time of the last IMU-triggered publication
@@ -276,9 +303,28 @@ class ApronEstimatorNode(Node):
         self.create_subscription(Range, 'vehicle/range', self._on_range, SENSOR_QOS)
         self._build_messages(p)
         self.create_timer(1.0, self._publish_diagnostics)
+        # the estimator is not thread-safe: callbacks and the loop thread take this lock
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.loop: PhaseLockedLoop | None = None
+        self._loop_thread: threading.Thread | None = None
+        self.loop_errors = 0
+        if p['clock'] == 'loop':
+            try:
+                lp = PhaseLockParams(period_s=1.0 / p['rate_hz'], lead_s=p['loop_lead_s'],
+                                     max_slew_s=p['loop_max_slew_s'],
+                                     max_wait_s=p['loop_max_wait_s'])
+            except ValueError as exc:
+                raise ParameterError(f'apron_estimator: loop parameters: {exc}') from exc
+            self.loop = PhaseLockedLoop(lp, time.monotonic())
+            self._loop_thread = threading.Thread(target=self._run_loop, daemon=True,
+                                                 name='apron_estimator_loop')
+            self._loop_thread.start()
+            how = f"a {p['rate_hz']:g} Hz loop phase-locked to pixy/blocks"
+        else:
+            how = f"vehicle/imu (<= {p['rate_hz']:g} Hz) and pixy/blocks"
         self.get_logger().info(
-            f"apron estimator clocked by vehicle/imu (<= {2 * p['rate_hz']:g} Hz) and "
-            f"pixy/blocks, FOV {p['camera.fov_x_deg']:g}x"
+            f"apron estimator clocked by {how}, FOV {p['camera.fov_x_deg']:g}x"
             f"{p['camera.fov_y_deg']:g} deg, paper_exact={p['camera.paper_exact']}")
 
     # --- helpers ---------------------------------------------------------------------------
@@ -324,6 +370,7 @@ class ApronEstimatorNode(Node):
 
     # --- subscriptions ---------------------------------------------------------------------
 
+    @_locked
     def _on_imu(self, msg: Imu) -> None:
         t = self._stamp(msg.header, 'vehicle/imu')
         if t is None:
@@ -348,6 +395,8 @@ class ApronEstimatorNode(Node):
             self._reject('implausible', 'vehicle/imu linear_acceleration (beyond 16 g)')
         else:
             self.estimator.on_accel(t, acc)
+        if self.loop is not None:
+            return                  # clock=loop: the loop thread publishes
         # the attitude was accepted: this message is a tick of the control clock
         now = self._now_s()
         if now - self._t_imu_published < self._imu_min_spacing_s:
@@ -357,6 +406,7 @@ class ApronEstimatorNode(Node):
             self._t_imu_published = now
             self.triggers['imu'] += 1
 
+    @_locked
     def _on_odom(self, msg: Odometry) -> None:
         t = self._stamp(msg.header, 'vehicle/odom')
         if t is None:
@@ -365,6 +415,7 @@ class ApronEstimatorNode(Node):
         self.last_stamp['odom'] = t
         self._feed_position(self.pairer.on_position(t, (p.x, p.y, p.z)), t, 'vehicle/odom')
 
+    @_locked
     def _on_velocity(self, msg: TwistStamped) -> None:
         t = self._stamp(msg.header, 'vehicle/velocity')
         if t is None:
@@ -380,6 +431,7 @@ class ApronEstimatorNode(Node):
         elif t < self.pairer.last_t_s:
             self._reject('out_of_order', what)
 
+    @_locked
     def _on_range(self, msg: Range) -> None:
         t = self._stamp(msg.header, 'vehicle/range')
         if t is None:
@@ -387,6 +439,7 @@ class ApronEstimatorNode(Node):
         self.last_stamp['range'] = t
         self.estimator.on_lidar(t, lidar_range(msg.range, msg.min_range, msg.max_range))
 
+    @_locked
     def _on_blocks(self, msg: PointCloud) -> None:
         t = self._stamp(msg.header, 'pixy/blocks')
         if t is None:
@@ -399,8 +452,40 @@ class ApronEstimatorNode(Node):
             return
         self.last_stamp['camera'] = t
         self.estimator.on_camera(t, blocks)
+        if self.loop is not None and not self.loop.on_event(time.monotonic()):
+            return                  # the next loop tick, at most loop_max_wait_s away, has it
         if self._publish(self._now_s()):  # the processed frame goes out at once
             self.triggers['camera'] += 1
+
+    # --- the loop (clock=loop) -------------------------------------------------------------
+
+    def _run_loop(self) -> None:
+        """Loop thread: sleep to each deadline of :attr:`loop`, then publish ``state(now)``."""
+        loop, stop = self.loop, self._stop
+        while not stop.is_set():
+            delay = loop.wait_s(time.monotonic())
+            if delay > 0.0:
+                if stop.wait(delay):
+                    break
+                continue            # re-check: a camera frame may have moved the deadline
+            try:
+                with self._lock:
+                    loop.tick(time.monotonic())
+                    if self.context.ok() and self._publish(self._now_s()):
+                        self.triggers['loop'] += 1
+            except Exception as exc:  # never let one bad tick stop the loop
+                if stop.is_set() or not self.context.ok():
+                    break
+                self.loop_errors += 1
+                self.get_logger().error(f'loop tick failed: {exc!r}',
+                                        throttle_duration_sec=2.0)
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        th = self._loop_thread
+        if th is not None and th.is_alive() and th is not threading.current_thread():
+            th.join(timeout=1.0)
+        return super().destroy_node()
 
     # --- output ----------------------------------------------------------------------------
 
@@ -438,12 +523,16 @@ class ApronEstimatorNode(Node):
         msg = self._msg_state
         msg.data = array('d', data)
         self.pub_state.publish(msg)
-        vis = self._msg_visible
-        vis.data = st.visible
-        self.pub_visible.publish(vis)
-        if st.tracked or self._odom_when_untracked:
+        # Lazy: the derived topics (viewers, figures, LANDING_TARGET) are built and published
+        # only while something subscribes; the control chain reads apron/state alone.
+        if self.pub_visible.get_subscription_count():
+            vis = self._msg_visible
+            vis.data = st.visible
+            self.pub_visible.publish(vis)
+        if (st.tracked or self._odom_when_untracked) and self.pub_odom.get_subscription_count():
             self.pub_odom.publish(self._odom(st, now))
-        if st.tracked:
+        if st.tracked and (self.pub_rel.get_subscription_count()
+                           or self.pub_rel_vel.get_subscription_count()):
             rel = self._msg_rel
             s_to_stamp(now, rel.header.stamp)
             rel.point.x, rel.point.y = st.rel_position_body_m
@@ -492,6 +581,7 @@ class ApronEstimatorNode(Node):
 
     # --- diagnostics -----------------------------------------------------------------------
 
+    @_locked
     def _publish_diagnostics(self) -> None:
         now = self._now_s()
         rate = self.published - self._published_at_diag  # the timer runs at 1 Hz
@@ -513,6 +603,10 @@ class ApronEstimatorNode(Node):
         values.update({f'rejected_{k}': str(v) for k, v in self.rejected.items()})
         values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
         values.update({f'trigger_{k}': str(v) for k, v in self.triggers.items()})
+        if self.loop is not None:
+            values.update(loop_ticks=str(self.loop.ticks), loop_skipped=str(self.loop.skipped),
+                          loop_overruns=str(self.loop.overruns),
+                          loop_errors=str(self.loop_errors))
         values.update({f'core_rejected_{k}': str(v)
                        for k, v in self.estimator.rejected.items()})
         if st is not None:

@@ -942,6 +942,9 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
                               pixy_port=None, area=(0.0, 0.0))
     graph = load_graph(default_graph_path(), graph_substitutions(args), False)
     overrides = {n.name: dict(n.parameters) for n in graph['nodes'] if n.name in NODE_DEFAULTS}
+    # the estimator's clock decides the apron/state stamps: written down, so a replay of
+    # this bag clocks the node the same way (replay_nodes)
+    overrides.setdefault('apron_estimator', {}).setdefault('clock', _estimator_clock_default())
     work = Path(tempfile.mkdtemp(prefix='deckland-golden-'))
     raw = work / 'raw'
     monitor = MissionMonitor(graph['wait_for_topics'])
@@ -1113,6 +1116,11 @@ _NODE_SUBSCRIBERS = {'vehicle/imu': 3, 'vehicle/odom': 2, 'vehicle/velocity': 2,
                      'apron/state': 3}
 
 
+def _estimator_clock_default() -> str:
+    from apron_estimator.node import PARAMS
+    return next(p.default for p in PARAMS if p.name == 'clock')
+
+
 def replay_nodes(bag_dir: str | os.PathLike[str], context: Any, executor: Any, *,
                  lead_s: float = 4.0, tail_s: float = 0.5,
                  log: Any = None) -> tuple[Replay, float]:
@@ -1133,7 +1141,10 @@ def replay_nodes(bag_dir: str | os.PathLike[str], context: Any, executor: Any, *
     from deckland.orchestrator import NodeSpec, Orchestrator
 
     golden = load(bag_dir)
-    params = golden.meta.get('parameters') or {}
+    params = {name: dict(v or {}) for name, v in (golden.meta.get('parameters') or {}).items()}
+    # A bag recorded before the estimator had a `clock` parameter was clocked by vehicle/imu
+    # and camera frames; replay it that way (its apron/state stamps are the IMU arrivals).
+    params.setdefault('apron_estimator', {}).setdefault('clock', 'imu')
     orch = Orchestrator([NodeSpec(name, name, parameters=dict(params.get(name) or {}))
                          for name in NODE_DEFAULTS], out=log or io.StringIO(),
                         stop_timeout_s=3.0)
