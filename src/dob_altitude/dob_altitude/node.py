@@ -329,6 +329,8 @@ class DobAltitudeNode(Node):
         s_to_stamp(st.t_s, thrust.header.stamp)
         thrust.wrench.force.z = out.thrust_n
         self.pub_thrust.publish(thrust)
+        if not self.pub_observer.get_subscription_count():
+            return      # lazy: Figure 9's σ and d̂ only while something subscribes
         obs = self._msg_observer
         s_to_stamp(st.t_s, obs.header.stamp)
         obs.vector.x = out.sigma

@@ -499,7 +499,10 @@ class LandingPlannerNode(Node):
         self.counts['reference'] += 1
 
         # viewers: the setpoint as a map pose (a height above the surface is shifted by the
-        # estimated surface height when it is known)
+        # estimated surface height when it is known). Lazy: nothing in the control chain
+        # reads it, so it is built and published only while something subscribes.
+        if not self.pub_setpoint.get_subscription_count():
+            return
         z = out.z_d_m
         if out.vertical_mode == VERTICAL_RELATIVE and apron.vertical.valid:
             z += apron.vertical.surface_height_m

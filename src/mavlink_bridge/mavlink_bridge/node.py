@@ -172,6 +172,7 @@ class MavlinkBridgeNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', RELIABLE_QOS)
         self.create_timer(0.02, self._on_timer)
         self.create_timer(1.0, self._publish_diagnostics)
+        self._build_messages()
         self._degraded_logged = False
         self._running = True
         self._reader = threading.Thread(target=self._read_loop, name='mavlink_reader',
@@ -185,6 +186,25 @@ class MavlinkBridgeNode(Node):
 
     def _boot_ms(self) -> int:
         return int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
+
+    def _build_messages(self) -> None:
+        """The 100 Hz telemetry messages, built once and refilled by the reader thread (the
+        only thread that publishes them; publish() serialises, so reuse is safe)."""
+        od = Odometry()
+        od.header.frame_id = self.cfg['map_frame']
+        od.child_frame_id = self.cfg['base_frame']
+        self._msg_odom = od
+        ts = TwistStamped()
+        ts.header.frame_id = self.cfg['map_frame']
+        self._msg_vel = ts
+        imu = Imu()
+        imu.header.frame_id = self.cfg['base_frame']
+        self._msg_imu = imu
+        rng = Range()
+        rng.header.frame_id = self.cfg['lidar_frame']
+        rng.radiation_type = Range.INFRARED
+        rng.field_of_view = float(self.cfg['range_field_of_view_rad'])
+        self._msg_range = rng
 
     def _stamp(self, header, frame_id: str) -> None:
         header.stamp = self.get_clock().now().to_msg()
@@ -285,10 +305,8 @@ class MavlinkBridgeNode(Node):
                                            msg.max_distance, msg.orientation)
             if msg.current_distance == 0xFFFF:
                 r = None  # UINT16_MAX = unknown, not 655.35 m (max_distance may be 0)
-            out = Range()
-            self._stamp(out.header, self.cfg['lidar_frame'])
-            out.radiation_type = Range.INFRARED
-            out.field_of_view = float(self.cfg['range_field_of_view_rad'])
+            out = self._msg_range
+            out.header.stamp = self.get_clock().now().to_msg()
             out.min_range = msg.min_distance * 0.01
             out.max_range = msg.max_distance * 0.01
             out.range = math.inf if r is None else r
@@ -307,9 +325,8 @@ class MavlinkBridgeNode(Node):
         (x, y, z), (vx, vy, vz) = self._pos
         euler, rates = self._att if self._att is not None else ((0.0, 0.0, 0.0), (0.0,) * 3)
         w, qx, qy, qz = euler_to_quaternion(*euler)
-        od = Odometry()
-        self._stamp(od.header, self.cfg['map_frame'])
-        od.child_frame_id = self.cfg['base_frame']
+        od = self._msg_odom
+        od.header.stamp = self.get_clock().now().to_msg()
         od.pose.pose.position.x, od.pose.pose.position.y, od.pose.pose.position.z = x, y, z
         q = od.pose.pose.orientation
         q.w, q.x, q.y, q.z = w, qx, qy, qz
@@ -320,20 +337,22 @@ class MavlinkBridgeNode(Node):
         tw.linear.z = m[0][2] * vx + m[1][2] * vy + m[2][2] * vz
         tw.angular.x, tw.angular.y, tw.angular.z = rates
         self.pub_odom.publish(od)
-        ts = TwistStamped()
-        ts.header = od.header
+        ts = self._msg_vel
+        ts.header.stamp = od.header.stamp
         ts.twist.linear.x, ts.twist.linear.y, ts.twist.linear.z = vx, vy, vz
         self.pub_vel.publish(ts)
 
     def _publish_imu(self, accel_flu, gyro_flu) -> None:
-        imu = Imu()
-        self._stamp(imu.header, self.cfg['base_frame'])
+        imu = self._msg_imu
+        imu.header.stamp = self.get_clock().now().to_msg()
         if self._att is not None:
             w, qx, qy, qz = euler_to_quaternion(*self._att[0])
-            imu.orientation.w, imu.orientation.x = w, qx
-            imu.orientation.y, imu.orientation.z = qy, qz
+            imu.orientation_covariance[0] = 0.0
         else:
+            w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
             imu.orientation_covariance[0] = -1.0  # REP-145: orientation unknown
+        imu.orientation.w, imu.orientation.x = w, qx
+        imu.orientation.y, imu.orientation.z = qy, qz
         imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z = gyro_flu
         acc = imu.linear_acceleration
         acc.x, acc.y, acc.z = accel_flu
