@@ -236,6 +236,8 @@ class MavlinkBridgeNode(Node):
             try:
                 self._handle(msg)
             except Exception as exc:  # never let one odd message stop the reader
+                if not self.context.ok():
+                    break           # shutting down: the publishers are gone, not an error
                 self.errors['recv_exceptions'] += 1
                 self.get_logger().warning(f'MAVLink {msg.get_type()} handling failed: {exc}',
                                           throttle_duration_sec=5.0)
