@@ -46,7 +46,7 @@ from dataclasses import dataclass, fields
 import math
 
 from dob_altitude.ground_effect import ground_effect_gain
-from dob_altitude.types import AltitudeInput, AltitudeOutput
+from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection
 
 #: Table 4 of the paper: controller gains K, Λ and observer gain Γ.
 PAPER_K = 0.85
@@ -181,18 +181,13 @@ class DobAltitudeController:
         ``rejected`` and the last good output is returned again (free-air hover thrust
         m g / cφcθ, tilt-guarded, if there is none yet).
         """
-        if not (dt_s > 0.0 and dt_s < math.inf):
-            self.rejected['bad_dt'] += 1
+        reason = input_rejection(inp, dt_s, applied_thrust_n)
+        if reason is not None:
+            self.rejected[reason] += 1
+            if reason == 'nan':
+                self._pending_dt += dt_s
             return self._hold(inp)
         a_s = inp.surface_accel_mps2
-        check = (inp.z_m + inp.z_dot_mps + inp.z_d_m + inp.z_d_dot_mps + inp.z_d_ddot_mps2
-                 + inp.roll_rad + inp.pitch_rad + inp.rotor_height_m + a_s)
-        if applied_thrust_n is not None:
-            check += applied_thrust_n
-        if not math.isfinite(check):
-            self.rejected['nan'] += 1
-            self._pending_dt += dt_s
-            return self._hold(inp)
 
         gam = self._gam
         lam = self._lam

@@ -9,6 +9,7 @@ ground), so ``z_m`` is the *relative* height z = z_vehicle − z_surface of the 
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,3 +38,18 @@ class AltitudeOutput:
     d_hat_mps2: float  # (18); PID: integral term expressed as an acceleration
     e_z_m: float  # (7)
     gamma_bar: float  # nominal ground-effect gain used (4)
+
+
+def input_rejection(inp: AltitudeInput, dt_s: float,
+                    applied_thrust_n: float | None) -> str | None:
+    """Why one controller sample must be refused, or None: ``'bad_dt'`` (dt not in (0, inf))
+    or ``'nan'`` (any input not finite). The one gate in front of both altitude laws (the DOB
+    (16)-(19) and the PID baseline); one ``isfinite`` on a sum is false if any term is NaN or
+    ±inf."""
+    if not (dt_s > 0.0 and dt_s < math.inf):
+        return 'bad_dt'
+    check = (inp.z_m + inp.z_dot_mps + inp.z_d_m + inp.z_d_dot_mps + inp.z_d_ddot_mps2
+             + inp.roll_rad + inp.pitch_rad + inp.rotor_height_m + inp.surface_accel_mps2)
+    if applied_thrust_n is not None:
+        check += applied_thrust_n
+    return None if math.isfinite(check) else 'nan'
