@@ -177,12 +177,18 @@ def test_height_triggered_link_loss_opens_when_the_world_says_so():
 
 
 def test_no_wire_faults_means_no_wrapper_and_node_kill_is_left_to_deckland_up():
-    for sc in (scenario(), scenario({'type': 'node_kill', 'node': 'dob_altitude',
-                                     'start_s': 1.0, 'loss_timeout_s': 0.3}),
-               scenario({'type': 'lidar_dropout', 'start_s': 1.0})):
+    for sc in (scenario(), scenario({'type': 'lidar_dropout', 'start_s': 1.0})):
         rig = Rig(sc)
         assert rig.sim.link is None and rig.emu.transport is rig.link.a
         assert rig.emu.params.offboard_loss_timeout_s == 1.0
+        assert rig.emu.params.offboard_loss_action == 'land'
+    # node_kill: `deckland up` kills the process, nothing on the wire; its failsafe keys still
+    # configure the emulated PX4 (the same autopilot settings as for the MAVLink faults)
+    rig = Rig(scenario({'type': 'node_kill', 'node': 'dob_altitude', 'start_s': 1.0,
+                        'loss_timeout_s': 0.3, 'action': 'return'}))
+    assert rig.sim.link is None and rig.emu.transport is rig.link.a
+    assert rig.emu.params.offboard_loss_timeout_s == 0.3
+    assert rig.emu.params.offboard_loss_action == 'return'
     with pytest.raises(ValueError, match='downlink'):
         Rig(scenario({'type': 'mavlink_loss'}), downlink='sometimes')
 

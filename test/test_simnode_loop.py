@@ -212,6 +212,51 @@ def test_offboard_setpoints_fly_the_vehicle_then_failsafe_lands_straight_down():
     assert not rig.emu.armed and rig.sim.last_kind == 'idle' and len(rig.outcomes) == 1
 
 
+def test_scenario_return_failsafe_flies_home_climbs_and_lands_there():
+    """A scenario whose command-path fault says `action: return` configures the emulated PX4
+    (COM_OF_LOSS_T = its loss_timeout_s, COM_OBL_RC_ACT = Return): when the setpoints stop it
+    switches to AUTO.RTL, climbs to min_alt_m, flies back to where OFFBOARD was engaged at no
+    more than return_speed_mps, and lands there (a deliberate fallback, no crash) — the graph's
+    counterpart of the in-process World's 'return' failsafe."""
+    fault = {'type': 'node_kill', 'node': 'dob_altitude', 'start_s': 100.0, 'action': 'return',
+             'loss_timeout_s': 0.3, 'min_alt_m': 2.5, 'return_speed_mps': 1.0}
+    rig = Rig(calm(faults=[fault]))
+    assert rig.emu.params.offboard_loss_action == 'return'
+    assert rig.emu.params.offboard_loss_timeout_s == 0.3
+    hover = (0.0, 0.0, 0.0, M * G)
+    rig.run(1.3, setpoint=hover)
+    rig.set_mode(6)
+    rig.run(0.2, setpoint=hover)
+    assert rig.emu.mode == 'OFFBOARD'
+    home = rig.emu.home_m     # the position PX4 reported (GPS: noise) at the switch
+    assert math.dist(home, rig.truth().position_m[:2]) < 0.3
+    # fly away: nose down 8° east (yaw 0 = east) for 2 s, then level
+    tilt = math.radians(8.0)
+    rig.run(2.0, setpoint=(0.0, tilt, 0.0, M * G / math.cos(tilt)))
+    rig.run(0.5, setpoint=hover)
+    away = rig.truth().position_m
+    assert math.dist(away[:2], home) > 1.5
+    rig.run(0.4)                                     # > 0.3 s without setpoints
+    assert rig.emu.mode == 'AUTO.RTL' and rig.emu.failsafe_active
+    assert rig.sim.last_kind == 'failsafe_return'
+    z_max, speeds = 0.0, []
+    for _ in range(300):
+        rig.run(0.1)
+        tr = rig.truth()
+        z_max = max(z_max, tr.position_m[2])
+        speeds.append(math.hypot(*tr.velocity_mps[:2]))
+        if rig.outcomes:
+            break
+    assert z_max > 2.4                               # climbed to the return altitude first
+    # once braked (the first 2 s: it was flying away at ~2 m/s), the way back is flown at
+    # the return speed (+ the PD's overshoot)
+    assert max(speeds[20:]) < 1.0 * 1.3
+    (out,) = rig.outcomes
+    c = rig.sim.world.contact
+    assert c.kind == 'ground' and math.dist(c.position_m[:2], home) < 0.5
+    assert out['fallback'] and not out['crash'] and not out['success']
+
+
 def test_outcome_on_the_pad_counts_trigger_and_searches():
     """AUTO.LAND over the pad centre: 'pad' contact, success, and time_to_land_s measured from
     the first planner mode outside IDLE/HOLD/TAKEOFF; SEARCH entries counted."""

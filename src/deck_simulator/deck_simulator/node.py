@@ -313,16 +313,27 @@ class AutopilotParams:
     horizontal: HorizontalParams = field(default_factory=HorizontalParams)
     land_speed_mps: float = 0.7       # MPC_LAND_SPEED
     rotor_height_m: float = 0.05      # rotor plane above the body origin, for γ̄ of (4)
+    return_speed_mps: float = 1.0     # RTL: horizontal speed toward home
+    return_alt_m: float = 0.0         # RTL: climb to at least this world altitude first
+    home_radius_m: float = 0.3        # RTL: within this of home and braked → land there
+    braked_mps: float = 0.15          # ... "braked" = horizontal speed below this
 
     def __post_init__(self) -> None:
-        for name in ('land_speed_mps', 'rotor_height_m'):
+        if not (isinstance(self.return_alt_m, int | float) and math.isfinite(self.return_alt_m)
+                and self.return_alt_m >= 0.0):
+            raise ValueError(f'AutopilotParams.return_alt_m must be a finite number >= 0, '
+                             f'got {self.return_alt_m!r}')
+        for name in ('land_speed_mps', 'rotor_height_m', 'return_speed_mps', 'home_radius_m',
+                     'braked_mps'):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
                 raise ValueError(f'AutopilotParams.{name} must be a finite number > 0, '
                                  f'got {v!r}')
 
     @classmethod
-    def for_scenario(cls, scenario: Scenario, land_speed_mps: float = 0.7) -> AutopilotParams:
+    def for_scenario(cls, scenario: Scenario, land_speed_mps: float = 0.7,
+                     return_speed_mps: float = 1.0,
+                     return_alt_m: float = 0.0) -> AutopilotParams:
         """Gains of the shipped PID matched to the scenario's vehicle (mass, g, thrust range)."""
         vp = scenario.vehicle
         weight = vp.mass_kg * vp.gravity_mps2
@@ -331,7 +342,8 @@ class AutopilotParams:
                       thrust_min_n=0.1 * weight, thrust_max_n=vp.thrust_to_weight * weight)
         hor = replace(HorizontalParams(), gravity_mps2=vp.gravity_mps2)
         return cls(altitude=alt, horizontal=hor, land_speed_mps=land_speed_mps,
-                   rotor_height_m=vp.rotor_height_m)
+                   rotor_height_m=vp.rotor_height_m, return_speed_mps=return_speed_mps,
+                   return_alt_m=return_alt_m)
 
 
 class AutopilotEmulation:
@@ -344,6 +356,12 @@ class AutopilotEmulation:
     * ``'land'`` / ``'failsafe_land'``: hold x, y and heading of the switch, descend at
       ``land_speed_mps`` (the height reference ramps down; it keeps ramping after contact, so
       the thrust falls to its minimum until the emulator's land detector disarms);
+    * ``'failsafe_return'`` (AUTO.RTL, PX4's offboard-loss "Return"): climb to
+      ``return_alt_m`` if lower, brake to rest, then the held point slews to ``home``
+      (where OFFBOARD was engaged) at ``return_speed_mps``; within ``home_radius_m`` of it
+      and braked, descend
+      there as ``'land'`` does. The same behaviour as the in-process World's ``'return'``
+      failsafe (``World._failsafe_command``), flown here by the PX4 stand-in's controllers;
     * ``'idle'``: disarmed, zero thrust.
 
     Vertical: :class:`dob_altitude.pid.PidAltitudeController` on the *true* world altitude
@@ -358,13 +376,19 @@ class AutopilotEmulation:
         self.altitude = PidAltitudeController(params.altitude)
         self.horizontal = HorizontalController(params.horizontal)
         self.kind: str | None = None
+        self.braked = False       # RTL: braked to rest, flying home
+        self.returned = False     # RTL: home reached, descending there
         self.target_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.target_yaw_rad = 0.0
         self.rejected: dict[str, int] = {'nan': 0}
 
     def _enter(self, kind: str, truth: Truth) -> None:
         self.kind = kind
+        self.braked = self.returned = False
         self.target_m = truth.position_m
+        if kind == 'failsafe_return':
+            x, y, z = truth.position_m
+            self.target_m = (x, y, max(z, self.params.return_alt_m))
         self.target_yaw_rad = truth.yaw_rad
         self.altitude.reset()
         self.horizontal.reset()
@@ -373,12 +397,14 @@ class AutopilotEmulation:
         """The companion flies (OFFBOARD): the next hold/land re-captures its target."""
         self.kind = 'offboard'
 
-    def command(self, kind: str, truth: Truth, dt_s: float) -> tuple[float, float, float, float]:
-        """(roll, pitch, yaw, thrust_n) for the emulator's ``kind`` at ``truth``."""
-        if kind not in ('hold', 'land', 'failsafe_land'):
+    def command(self, kind: str, truth: Truth, dt_s: float,
+                home: tuple[float, float] | None = None) -> tuple[float, float, float, float]:
+        """(roll, pitch, yaw, thrust_n) for the emulator's ``kind`` at ``truth``; ``home`` is
+        the RTL target (the emulator's ``home_m``; None → return where the failsafe began)."""
+        if kind not in ('hold', 'land', 'failsafe_land', 'failsafe_return'):
             self.kind = kind
             return 0.0, 0.0, truth.yaw_rad, 0.0
-        landing = kind != 'hold'
+        landing = kind in ('land', 'failsafe_land')
         if kind != self.kind and not (landing and self.kind in ('land', 'failsafe_land')):
             self._enter(kind, truth)
         self.kind = kind
@@ -387,6 +413,24 @@ class AutopilotEmulation:
         vx, vy, vz = truth.velocity_mps
         tx, ty, tz = self.target_m
         z_d_dot = 0.0
+        if kind == 'failsafe_return' and not self.braked:
+            # PX4: brake first, then start back from where the vehicle came to rest
+            tx, ty = x, y
+            self.target_m = (tx, ty, tz)
+            self.braked = math.hypot(vx, vy) <= p.braked_mps
+        elif kind == 'failsafe_return' and not self.returned:
+            hx, hy = home if home is not None else (tx, ty)
+            ex, ey = hx - tx, hy - ty
+            n = math.hypot(ex, ey)
+            step = p.return_speed_mps * dt_s
+            if n > step:
+                ex, ey = ex * step / n, ey * step / n
+            tx, ty = tx + ex, ty + ey
+            self.target_m = (tx, ty, tz)
+            if (math.hypot(x - hx, y - hy) <= p.home_radius_m
+                    and math.hypot(vx, vy) <= p.braked_mps):
+                self.returned = True
+        landing = landing or self.returned
         if landing:
             # straight down at the land speed; the reference stops 1 m below the surface so the
             # integral stays bounded while resting
@@ -443,16 +487,26 @@ class SimulationLoop:
         # failsafe settings (COM_OF_LOSS_T, MPC_LAND_SPEED) are the first such fault's keys
         self.link: ImpairedLink | None = None
         wire = ImpairedLink.wire_faults(self.world)
-        if wire:
-            spec = wire[0].spec
+        fs = self.world.faults
+        if fs is not None and (fs.has_link or wire):
+            # a scenario fault that cuts the command path (on the wire, or a node_kill of a
+            # command-path node: the orchestrator kills the process) carries the autopilot's
+            # failsafe settings: COM_OF_LOSS_T, MPC_LAND_SPEED, and 'return' → AUTO.RTL
+            spec = fs.link_spec
+            action = 'return' if spec.action == 'return' else emulator.params.offboard_loss_action
             emulator.params = replace(emulator.params,
                                       offboard_loss_timeout_s=spec.loss_timeout_s,
-                                      land_speed_mps=spec.land_speed_mps)
+                                      land_speed_mps=spec.land_speed_mps,
+                                      offboard_loss_action=action)
+        if wire:
             self.link = ImpairedLink(emulator.transport, self.world, seed, link_downlink)
             emulator.set_transport(self.link)
         self.pixy_send = pixy_send
+        spec = fs.link_spec if fs is not None else None
         self.autopilot = AutopilotEmulation(AutopilotParams.for_scenario(
-            scenario, emulator.params.land_speed_mps))
+            scenario, emulator.params.land_speed_mps,
+            return_speed_mps=spec.return_speed_mps if spec is not None else 1.0,
+            return_alt_m=spec.min_alt_m if spec is not None else 0.0))
         self.h_s = 1.0 / physics_rate_hz
         sp = scenario.sensors
         self._periods = {'telemetry': 1.0 / sp.imu.rate_hz, 'lidar': 1.0 / sp.lidar.rate_hz,
@@ -572,7 +626,7 @@ class SimulationLoop:
             self.counters['offboard_steps'] += 1
             return
         roll, pitch, yaw, thrust = self.autopilot.command(cmd.kind, self.world.truth(),
-                                                          self._periods['control'])
+                                                          self._periods['control'], emu.home_m)
         self.world.set_command(roll, pitch, yaw, thrust)
         self.counters['autopilot_steps'] += 1
 
@@ -716,9 +770,10 @@ PARAMS = [
               'deadlines); keep it a divisor of the sensor periods (10 ms: IMU 100 Hz, camera '
               'and lidar 50 Hz) so telemetry leaves at a deadline',
               lambda v: 0.001 <= v <= 0.05, 'must be in [0.001, 0.05]'),
-    one_of('offboard_loss_action', 'land', ('land', 'hold'),
+    one_of('offboard_loss_action', 'land', ('land', 'hold', 'return'),
            'emulated PX4 COM_OBL_RC_ACT after offboard setpoints stop for 1 s (COM_OF_LOSS_T; '
-           "a scenario MAVLink fault's loss_timeout_s replaces the 1 s)"),
+           "a scenario command-path fault's loss_timeout_s replaces the 1 s, and its "
+           "action: return selects 'return' = AUTO.RTL)"),
     one_of('mavlink_fault_downlink', 'cut', DOWNLINK_MODES,
            "scenario MAVLink faults on the telemetry (autopilot -> bridge): 'none', 'cut' "
            "(only the link-loss window, default), 'all' (also loss and latency); the uplink "

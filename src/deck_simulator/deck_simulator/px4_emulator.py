@@ -15,8 +15,8 @@ It is stepped with the simulator's time ``t_s`` (never the wall clock):
     :class:`~mavlink_bridge.conversions.ThrustCalibration`), HEARTBEAT; then run the mode logic:
     OFFBOARD is accepted only after setpoints have streamed > 1 s at > 2 Hz; if they stop for
     ``offboard_loss_timeout_s`` (PX4 ``COM_OF_LOSS_T``, 1.0 s) the failsafe switches to
-    AUTO.LAND (or AUTO.LOITER) and :attr:`failsafe_active` is set; auto-disarm after landing
-    (``COM_DISARM_LAND``) or when never taking off (``COM_DISARM_PRFLT``).
+    AUTO.LAND (or AUTO.LOITER, or AUTO.RTL) and :attr:`failsafe_active` is set; auto-disarm
+    after landing (``COM_DISARM_LAND``) or when never taking off (``COM_DISARM_PRFLT``).
 ``publish_state(t_s, ...)``
     the simulator's truth/sensor values; streams HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
     DISTANCE_SENSOR (cm, orientation 25), HIGHRES_IMU / SCALED_IMU and EXTENDED_SYS_STATE at the
@@ -25,8 +25,11 @@ It is stepped with the simulator's time ``t_s`` (never the wall clock):
     what the vehicle should fly now, a :class:`VehicleCommand` named tuple
     ``(kind, roll_rad, pitch_rad, yaw_rad, thrust_n)`` with kind ``'idle'`` (disarmed),
     ``'offboard'`` (the last setpoint), ``'hold'`` (level, vertical speed 0), ``'land'`` or
-    ``'failsafe_land'`` (level, descend at ``land_speed_mps``). Hold/land thrust comes from a
-    simple vertical-speed loop on the last published state, tilt-compensated.
+    ``'failsafe_land'`` (level, descend at ``land_speed_mps``), ``'failsafe_return'`` (AUTO.RTL:
+    fly to :attr:`home_m`, where OFFBOARD was engaged, then land there — the simulator node's
+    ``AutopilotEmulation`` flies it; the thrust here only holds the vertical speed at 0).
+    Hold/land thrust comes from a simple vertical-speed loop on the last published state,
+    tilt-compensated.
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ MODE_POSCTL = (3, 0)
 MODE_ALTCTL = (2, 0)
 MODE_OFFBOARD = (6, 0)
 MODE_AUTO_LOITER = (4, 3)
+MODE_AUTO_RTL = (4, 5)
 MODE_AUTO_LAND = (4, 6)
 _ACCEPTED_MODES = (MODE_POSCTL, MODE_ALTCTL, MODE_OFFBOARD, MODE_AUTO_LOITER, MODE_AUTO_LAND)
 FORCE_DISARM_MAGIC = 21196
@@ -75,7 +79,7 @@ DEFAULT_INTERVALS_S = {
 class VehicleCommand(NamedTuple):
     """What the simulated vehicle should do: ``world.set_command(roll, pitch, yaw, thrust)``."""
 
-    kind: str        # 'idle' | 'offboard' | 'hold' | 'land' | 'failsafe_land'
+    kind: str        # 'idle' | 'offboard' | 'hold' | 'land' | 'failsafe_land' | 'failsafe_return'
     roll_rad: float
     pitch_rad: float
     yaw_rad: float
@@ -93,7 +97,7 @@ class EmulatorParams:
     remote_host: str = '127.0.0.1'
     remote_port: int = 14540               # where the companion (the bridge) listens
     offboard_loss_timeout_s: float = 1.0   # COM_OF_LOSS_T
-    offboard_loss_action: str = 'land'     # COM_OBL_RC_ACT: 'land' | 'hold'
+    offboard_loss_action: str = 'land'     # COM_OBL_RC_ACT: 'land' | 'hold' | 'return' (RTL)
     offboard_warmup_s: float = 1.0         # setpoints needed before OFFBOARD is accepted
     max_setpoint_gap_s: float = 0.5        # gaps above this restart the warm-up (> 2 Hz)
     land_speed_mps: float = 0.7            # MPC_LAND_SPEED
@@ -114,9 +118,10 @@ class EmulatorParams:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f'EmulatorParams.{name} = {v!r}: must be finite')
-        if self.offboard_loss_action not in ('land', 'hold'):
+        if self.offboard_loss_action not in ('land', 'hold', 'return'):
             raise ValueError(f'EmulatorParams.offboard_loss_action = '
-                             f"{self.offboard_loss_action!r}: must be 'land' or 'hold'")
+                             f"{self.offboard_loss_action!r}: must be 'land', 'hold' or "
+                             "'return'")
         for name in ('system_id', 'component_id'):
             if not 1 <= getattr(self, name) <= 255:
                 raise ValueError(f'EmulatorParams.{name} = {getattr(self, name)!r}: '
@@ -235,6 +240,8 @@ class Px4Emulator:
         self.armed = False
         self.main_mode, self.sub_mode = MODE_POSCTL
         self.failsafe_active = False
+        #: (x, y) ENU where OFFBOARD was last engaged: the RTL target (None before)
+        self.home_m: tuple[float, float] | None = None
         self.acks: list[tuple[int, int]] = []   # (command, result) sent, for tests/diagnostics
         self.setpoint: VehicleCommand | None = None
         self.last_setpoint_s = -math.inf
@@ -366,6 +373,8 @@ class Px4Emulator:
         if mode == MODE_AUTO_LAND:
             vz_ref, kind = -self.params.land_speed_mps, (
                 'failsafe_land' if self.failsafe_active else 'land')
+        elif mode == MODE_AUTO_RTL:
+            vz_ref, kind = 0.0, 'failsafe_return'
         else:
             vz_ref, kind = 0.0, 'hold'
         accel = cal.gravity_mps2 + self.params.vz_gain_per_s * (vz_ref - self._vel[2])
@@ -390,6 +399,8 @@ class Px4Emulator:
     def _set_mode(self, mode: tuple[int, int]) -> None:
         if mode != MODE_OFFBOARD:
             self._hold_yaw = self._att[2]  # hold/land keep the heading of the switch
+        elif (self.main_mode, self.sub_mode) != MODE_OFFBOARD:
+            self.home_m = (self._pos[0], self._pos[1])   # RTL comes back here
         self.main_mode, self.sub_mode = mode
 
     def _ack(self, command: int, result: int, msg) -> None:
@@ -495,8 +506,8 @@ class Px4Emulator:
         p = self.params
         if (self.main_mode, self.sub_mode) == MODE_OFFBOARD and \
                 t_s - self.last_setpoint_s > p.offboard_loss_timeout_s:
-            self._set_mode(MODE_AUTO_LAND if p.offboard_loss_action == 'land'
-                           else MODE_AUTO_LOITER)
+            self._set_mode({'land': MODE_AUTO_LAND, 'return': MODE_AUTO_RTL}.get(
+                p.offboard_loss_action, MODE_AUTO_LOITER))
             self.failsafe_active = True
             self.counters['failsafes'] += 1
         if not self.armed:
