@@ -208,3 +208,21 @@ def test_step_cost_report():
     us = min(timeit.repeat(lambda: w.step(DT), number=n, repeat=3)) / n * 1e6
     print(f'\nWorld.step: {us:.2f} us')
     assert us < 60.0      # generous bound for loaded CI machines; target ~8 us
+
+
+def test_true_lidar_range_is_the_full_matrix_formula_bit_for_bit():
+    import random
+
+    from deck_simulator.sensors import lidar_true_range
+    from deckland_common.frames import rot_body_to_world
+    w = World(calm(), seed=2)
+    cx, cy, ztop = w.truth().beacon_position_m
+    rng = random.Random(5)
+    for _ in range(500):
+        v = w.vehicle
+        v.x, v.y, v.z = cx + rng.uniform(-2, 2), cy + rng.uniform(-2, 2), rng.uniform(-0.1, 3)
+        v.roll, v.pitch = rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6)
+        v.yaw = rng.uniform(-math.pi, math.pi)
+        ref = lidar_true_range((v.x, v.y, v.z), rot_body_to_world(v.roll, v.pitch, v.yaw),
+                               (cx, cy), ztop, (w.deck.half_x, w.deck.half_y))
+        assert w.true_lidar_range() == ref

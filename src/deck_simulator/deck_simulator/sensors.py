@@ -238,15 +238,24 @@ def lidar_true_range(position_m: tuple[float, float, float], r_body_to_world: Ma
     The sides of the deck are not modelled (the ray from a vehicle beside and below the
     pad top goes to the ground).
     """
-    dx, dy, dz = -r_body_to_world[0][2], -r_body_to_world[1][2], -r_body_to_world[2][2]
+    return lidar_range_along(position_m[0], position_m[1], position_m[2],
+                             -r_body_to_world[0][2], -r_body_to_world[1][2],
+                             -r_body_to_world[2][2], deck_center_m[0], deck_center_m[1],
+                             deck_top_m, half_size_m[0], half_size_m[1])
+
+
+def lidar_range_along(x: float, y: float, z: float, dx: float, dy: float, dz: float,
+                      deck_cx: float, deck_cy: float, deck_top_m: float, half_x: float,
+                      half_y: float) -> float | None:
+    """:func:`lidar_true_range` in scalars: from (x, y, z) along the unit direction
+    (dx, dy, dz) (body −z in world axes, i.e. −R e3) to the pad top or the ground."""
     if dz >= -1e-9:
         return None
-    x, y, z = position_m
     if z > deck_top_m:
         s = (z - deck_top_m) / -dz
-        hx = x + s * dx - deck_center_m[0]
-        hy = y + s * dy - deck_center_m[1]
-        if -half_size_m[0] <= hx <= half_size_m[0] and -half_size_m[1] <= hy <= half_size_m[1]:
+        hx = x + s * dx - deck_cx
+        hy = y + s * dy - deck_cy
+        if -half_x <= hx <= half_x and -half_y <= hy <= half_y:
             return s
     if z <= 0.0:
         return 0.0

@@ -39,7 +39,7 @@ from deck_simulator.sensors import (
     Imu,
     Lidar,
     Normal,
-    lidar_true_range,
+    lidar_range_along,
     normal_stream,
 )
 from deck_simulator.vehicle import Vehicle
@@ -554,10 +554,21 @@ class World:
         return stamp, blocks
 
     def true_lidar_range(self) -> float | None:
+        """The lidar's true range now (:func:`~deck_simulator.sensors.lidar_true_range`).
+
+        Only the third column of R = :func:`rot_body_to_world` is needed (the ray is
+        −R e3), computed with the same expressions (so the same bits) without the rest of
+        the matrix."""
         v = self.vehicle
-        cx, cy, ztop, _, _ = self._deck_now
-        return lidar_true_range((v.x, v.y, v.z), rot_body_to_world(v.roll, v.pitch, v.yaw),
-                                (cx, cy), ztop, (self.deck.half_x, self.deck.half_y))
+        roll, pitch, yaw = v.roll, v.pitch, v.yaw
+        cr, sr = math.cos(roll), math.sin(roll)
+        cp, sp = math.cos(pitch), math.sin(pitch)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        dcx, dcy, ztop, _, _ = self._deck_now
+        d = self.deck
+        return lidar_range_along(v.x, v.y, v.z, -(cy * sp * cr + sy * sr),
+                                 -(sy * sp * cr - cy * sr), -(cp * cr), dcx, dcy, ztop,
+                                 d.half_x, d.half_y)
 
     def read_lidar(self) -> float | None:
         """LidarLite range along body −z (m), None when there is no valid return."""
