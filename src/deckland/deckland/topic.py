@@ -217,6 +217,10 @@ def cmd_echo(args: argparse.Namespace) -> int:
         deadline = None if args.duration is None else time.monotonic() + args.duration
         _spin(session, stop, lambda: args.count is not None and state['n'] >= args.count,
               deadline)
+        if args.count is not None and state['n'] < args.count and not stop.is_set():
+            print(f"received {state['n']} of {args.count} messages on "
+                  f'{rosio.normalize_topic(args.topic)} within {args.duration} s', file=err)
+            return 1
         return 0
 
     return _run(args, body, 'deckland_topic_echo')
