@@ -435,3 +435,72 @@ def test_idle_does_not_latch_a_hold_height_before_the_first_valid_height():
     outs = [d.step() for _ in range(200)]
     assert all(o.mode is Mode.IDLE for o in outs)
     assert min(o.z_d_m for o in outs) > 1.95   # holds where it is, does not sink
+
+
+def _final_at(height):
+    """A driver in FINAL whose vehicle followed the reference exactly down to ``height``."""
+    d = aligned_driver()
+    d.run(0.6)
+    d.height = 0.45
+    d.step()
+    assert d.out.mode is Mode.FINAL
+    while d.out.z_d_m > height:
+        d.height, d.closing = max(d.out.z_d_m, height), d.out.z_d_dot_mps
+        d.step()
+    d.height, d.closing = height, 0.0
+    return d
+
+
+def test_final_reference_is_leashed_to_the_measured_height():
+    """The vehicle stops following (the deck fell away, the estimate lagged): z_d stays
+    within final_leash_m below h, so the altitude law's catch-up Λ·e_z stays bounded, and
+    ż_d keeps asking for the final speed (a rate reference, no pause)."""
+    d = _final_at(0.35)
+    pp = d.p.params
+    for _ in range(300):
+        d.step()
+        assert d.out.z_d_m >= 0.35 - pp.final_leash_m - 1e-9
+    assert d.out.mode is Mode.FINAL
+    assert d.out.z_d_dot_mps == pytest.approx(-pp.final_speed_mps)
+    # following again: descends with the vehicle, never more than the leash below it
+    for _ in range(100):
+        d.height -= pp.final_speed_mps * DT
+        d.step()
+        assert d.out.z_d_m >= d.height - pp.final_leash_m - 1e-9
+
+
+def test_leash_only_bounds_the_reference_from_below():
+    """A vehicle below the reference (the deck came up at it) is not pulled down: z_d runs
+    on at its own rate, the law keeps asking it to climb relative to the deck."""
+    d = _final_at(0.35)
+    d.height = 0.30
+    z0 = d.out.z_d_m
+    d.run(0.2)
+    pp = d.p.params
+    assert d.out.z_d_m == pytest.approx(z0 - 0.2 * pp.final_speed_mps, abs=1e-6)
+
+
+def test_leash_ignores_a_stale_height():
+    """Vertical state invalid: the leash must not pin the reference to the last height."""
+    d = _final_at(0.35)
+    d.valid = False
+    d.run(0.4)                                  # < invalid_timeout_s: still FINAL
+    assert d.out.mode is Mode.FINAL
+    assert d.out.z_d_m < 0.35 - 2 * d.p.params.final_leash_m
+
+
+def test_leash_lets_go_on_the_deck_after_the_travel_it_took_back():
+    """Resting in the landed band: the leash takes back landed_press − final_leash of asked
+    travel, then lets go; LANDED then needs the usual landed_press_m below h and the hold.
+    The leash can only delay LANDED, by (landed_press − final_leash) / final_speed."""
+    d = _final_at(0.17)
+    pp = d.p.params
+    v = pp.final_speed_mps
+    z0, t0 = d.out.z_d_m, d.t
+    took_back = pp.landed_press_m - pp.final_leash_m
+    d.run(0.9 * ((z0 - 0.17 + pp.final_leash_m) + took_back) / v)
+    assert d.out.z_d_m >= 0.17 - pp.final_leash_m - 1e-9     # still leashed
+    d.run(10.0, until=Mode.LANDED)
+    assert d.out.mode is Mode.LANDED
+    unleashed = (z0 - 0.17 + pp.landed_press_m) / v + pp.landed_hold_s
+    assert d.t - t0 == pytest.approx(unleashed + took_back / v, abs=0.03)

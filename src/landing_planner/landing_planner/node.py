@@ -92,6 +92,8 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'final_approach_height_m': 'height (m) where the final approach starts (Step 9)',
     'final_speed_mps': 'final descent speed (m/s) relative to the deck (Step 10)',
     'final_press_m': 'final reference this far (m) below the contact height',
+    'final_leash_m': 'final descent: the height reference at most this far (m) below the '
+                     'measured height (bounds the catch-up speed of the altitude law)',
     'search_height_m': 'search height (m) above the surface below (Step 12)',
     'search_speed_mps': 'horizontal speed (m/s) of the search pattern',
     'search_radius_m': 'half side (m) of the square search pattern',

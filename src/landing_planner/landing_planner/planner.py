@@ -68,6 +68,7 @@ class PlannerParams:
     final_approach_height_m: float = 0.5  # Step 9 (like PX4 PLD_FAPPR_ALT)
     final_speed_mps: float = 0.08       # Step 10, relative to the deck (campaign: README)
     final_press_m: float = 0.3          # final target this far below contact height
+    final_leash_m: float = 0.005        # FINAL: z_d at most this far below the measured h
     search_height_m: float = 3.5        # Step 12, above the surface below
     search_speed_mps: float = 0.5
     search_radius_m: float = 1.0        # half side of the square pattern
@@ -115,6 +116,8 @@ class PlannerParams:
         if self.landed_press_m >= self.final_press_m:
             raise ValueError('PlannerParams.landed_press_m must be < final_press_m (the '
                              'reference must be able to press that far below contact)')
+        if self.final_leash_m >= self.landed_press_m:
+            raise ValueError('PlannerParams.final_leash_m must be < landed_press_m')
         if self.max_xy_dist_m < self.acceptance_radius_m:
             raise ValueError('PlannerParams.max_xy_dist_m must be >= acceptance_radius_m')
 
@@ -195,6 +198,7 @@ class LandingPlanner:
         self._zref = ReferenceGenerator(ReferenceLimits(p.vertical_accel_mps2,
                                                         p.vertical_jerk_mps3))
         self._zref_ok = False
+        self._leash_taken_m = 0.0   # what the leash took back in the landed band (_leash)
         self._vframe = VERTICAL_RELATIVE
         self._world_floor_m = 0.0
         self._path = _Path(ReferenceLimits(p.approach_accel_mps2, p.approach_jerk_mps3))
@@ -306,6 +310,8 @@ class LandingPlanner:
         z_target, z_speed = self._vertical_target(target_ok, paused)
         if self._zref_ok:
             self._zref.step(z_target, z_speed, dt_s)
+            if vert_ok:
+                self._leash()
         thrust = self.mode is not Mode.LANDED
         if self.mode is Mode.IDLE and (vehicle.landed or (
                 self._height is not None
@@ -591,6 +597,44 @@ class LandingPlanner:
             return latch.hold_height_m, p.vertical_speed_mps
         # LANDED: come to rest where the reference is
         return self._stop_here()
+
+    def _leash(self) -> None:
+        """Final descent: the reference never runs more than ``final_leash_m`` below h.
+
+        The altitude law turns a height error into descent speed: on the DOB's sliding
+        surface (14) σ = 0 means ė_z ≈ −Λ e_z, i.e. Λ = 10.5 (m/s) per metre, so a reference
+        1 cm below the vehicle asks for 0.1 m/s *on top of* ż_d. Without a leash, z_d keeps
+        running down at the final speed whenever the vehicle lags it (the deck fell away
+        after a reversal, the relative-speed estimate was off, a gust) and the vehicle then
+        catches up at contact (README, "Touchdown speed"). With it, below the final-approach
+        height the relative descent is set by ż_d (a rate reference) and e_z ≥ −final_leash_m
+        bounds the catch-up to Λ·final_leash_m ≈ 0.05 m/s. The shift keeps ż_d and z̈_d (no
+        kick of (17)), and ż_d stays −final_speed, so the vehicle keeps descending to contact.
+
+        The leash lets go once, inside the landed height band, it has taken back
+        landed_press_m − final_leash_m (the vehicle was asked for that much travel and did
+        not make it: resting, or the deck receding). From there the reference runs on as
+        before, so ``_landed`` and its "reference pressing landed_press_m below h" test are
+        unchanged: the leash can only delay LANDED (by about landed_press_m / final_speed),
+        never declare it. Only with a valid height this step: a stale one must not pin the
+        reference.
+        """
+        p = self.params
+        h = self._height
+        if (self._vframe != VERTICAL_RELATIVE or self.mode not in (Mode.FINAL, Mode.FALLBACK)
+                or h > p.final_approach_height_m):
+            self._leash_taken_m = 0.0
+            return
+        in_band = h - p.gear_height_m <= p.landed_height_tol_m
+        if not in_band:
+            self._leash_taken_m = 0.0
+        elif self._leash_taken_m >= p.landed_press_m - p.final_leash_m:
+            return      # let go: the reference presses on toward its target
+        low = h - p.final_leash_m
+        if self._zref.z_m < low:
+            if in_band:
+                self._leash_taken_m += low - self._zref.z_m
+            self._zref.shift(low - self._zref.z_m)
 
     def _stop_here(self) -> tuple[float, float]:
         """Target 'stop where the braking reference comes to rest' (evaluated only if used)."""
