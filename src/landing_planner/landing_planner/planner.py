@@ -176,6 +176,7 @@ class _Latch:
     t_arrived: float | None = None
     t_landed_cond: float | None = None
     t_invalid: float | None = None
+    over_deck: bool = False      # FALLBACK entered over the tracked deck: keep following it
     waypoints: list[tuple[float, float]] = field(default_factory=list)
     wp_index: int = 0
     t_wp_reached: float | None = None
@@ -289,6 +290,9 @@ class LandingPlanner:
                 if self.mode is Mode.FINAL or (self.mode is Mode.DESCEND and low):
                     self._enter(Mode.FALLBACK, t_s, f'{what} invalid in {self.mode.name}: '
                                 'slow descent where it is (safe mode)')
+                    # "where it is" is the deck: the camera still sees it, so the vehicle
+                    # stays over it (a GPS hold drifts off the pad with the GPS error)
+                    self._l.over_deck = target_ok
                     self._on_entry(t_s)
                 elif self.mode not in (Mode.HOLD, Mode.FALLBACK, Mode.FINAL):
                     self._enter(Mode.HOLD, t_s, f'{what} invalid for '
@@ -602,7 +606,8 @@ class LandingPlanner:
         p = self.params
         mode = self.mode
         latch = self._l
-        if mode in (Mode.ALIGN, Mode.DESCEND, Mode.FINAL):
+        if mode in (Mode.ALIGN, Mode.DESCEND, Mode.FINAL) or (
+                mode is Mode.FALLBACK and latch.over_deck):
             if target_ok:
                 ax, ay = apron.apron_position_m
                 fx, fy = apron.apron_velocity_mps
