@@ -211,12 +211,14 @@ class ApronEstimator:
                 self._own['off_deck'] += 1
             else:
                 candidates.append(c)
-        # the surface under the vehicle from the latest raw lidar height (not the filter's
-        # surface state, which lags a re-base at a deck edge): resolves false blobs
+        # the level of the surface under the vehicle (the sum of the surface steps the
+        # vertical filter has re-based on): resolves false blobs. Not the absolute surface
+        # height: samples over two hypotheses are taken seconds apart, and the deck heaves
+        # (and the altitude drifts) by more than a deck's rise in between (README)
         vf = self.vertical
         surface = None
-        if vf.last_h_m is not None and self._pos is not None and self._recent_lidar(t_s):
-            surface = self._pos[1][2] - vf.last_h_m
+        if vf.initialised and self._recent_lidar(t_s):
+            surface = vf.surface_level_m
         self.horizontal.update(t_s, candidates, height, surface)
 
     def _height_at(self, t_s: float) -> float | None:

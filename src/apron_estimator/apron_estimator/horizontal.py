@@ -359,6 +359,11 @@ class HorizontalTracker:
         if self.t_filter is None or not (math.isfinite(k) and k > 0.0):
             return
         self.kf.scale(k)
+        # the rivals' offsets are measurements in the same scale: a rival not rescaled no
+        # longer matches its own blob (a new, unvisited rival each time: endless probing)
+        for rv in self.rivals:
+            rv.dx *= k
+            rv.dy *= k
         self.events['rescaled'] += 1
 
     def _control(self, t0: float, t1: float) -> tuple[float, float, float, float]:
