@@ -401,8 +401,9 @@ class HorizontalTracker:
         ``t_s`` is the exposure stamp; frames must be strictly in order (else rejected and
         counted). Among the candidates passing the NIS gate the one with the smallest NIS is
         used; others are counted as ``gated`` and feed the rivals. An empty list is a frame
-        without a detection. ``surface_m`` is the surface height under the vehicle at t_s
-        (vertical filter), None if unknown: it resolves rivals.
+        without a detection. ``surface_m`` is the level of the surface under the vehicle at t_s,
+        None if unknown: it resolves rivals. Only differences matter; ApronEstimator passes
+        ``VerticalFilter.surface_level_m`` (the surface steps, without the heave).
         """
         if not (math.isfinite(t_s) and math.isfinite(height_m)):
             self.rejected['nan'] += 1
