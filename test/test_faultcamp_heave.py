@@ -177,3 +177,79 @@ def test_rescale_scales_the_rivals_with_the_track():
     dx = tr.rivals[0].dx
     tr.rescale(1.4)
     assert tr.rivals[0].dx == pytest.approx(1.4 * dx)
+
+
+# --- where the surface is seen: the lowest level, at the lidar spot -------------------------
+
+def _hover_track(tr, t, seconds, rel_glint, surface, spot=(0.0, 0.0), vehicle=(0.0, 0.0),
+                 start=None):
+    """Frames at 50 Hz: beacon at the origin, glint at rel_glint (world); the vehicle flies
+    at constant speed from ``start`` (default: already there) to ``vehicle``."""
+    n = round(seconds / 0.02)
+    a = start if start is not None else vehicle
+    for k in range(1, n + 1):
+        t += 0.02
+        f = k / n
+        vx, vy = a[0] + f * (vehicle[0] - a[0]), a[1] + f * (vehicle[1] - a[1])
+        tr.on_accel(t, 0.0, 0.0)
+        tr.update(t, [(-vx, -vy), (rel_glint[0] - vx, rel_glint[1] - vy)], 1.4, surface,
+                  spot)
+    return t
+
+
+def test_ground_seen_near_a_hypothesis_marks_it_even_if_the_deck_follows():
+    """Campaign seed 100058: hovering over a glint 0.1 m beside the pad the lidar saw the
+    ground; leaving it (still within verify_radius_m) it saw the deck. A running average took
+    the glint's level up to 0.44 m (deck 0.59 m): no decision, the vehicle held until the
+    timeout. A beacon has deck all around it: the lowest level seen near a hypothesis counts."""
+    from apron_estimator.horizontal import HorizontalTracker
+    tr = HorizontalTracker()
+    glint = (0.6, 0.0)
+    t = _hover_track(tr, 0.0, 1.2, glint, 0.6)                 # over the beacon: deck level
+    assert tr.events['probes'] == 1                            # the track is on the glint now
+    t = _hover_track(tr, t, 3.0, glint, 0.6, vehicle=(0.5, 0.0), start=(0.0, 0.0))
+    t = _hover_track(tr, t, 0.4, glint, 0.0, vehicle=glint, start=(0.5, 0.0))
+    t = _hover_track(tr, t, 1.0, glint, 0.0, vehicle=glint)    # over the glint: ground
+    t = _hover_track(tr, t, 0.3, glint, 0.6, vehicle=(0.5, 0.0), start=glint)  # deck, near
+    t = _hover_track(tr, t, 1.0, glint, 0.6, vehicle=(0.3, 0.0), start=(0.5, 0.0))
+    assert tr.events['rivals_rejected'] == 1 and not tr.ambiguous
+    x, y, *_ = tr.state(t)
+    assert math.hypot(x + 0.3, y) < 0.05                       # the track is the beacon
+
+
+def test_the_surface_is_attributed_where_the_lidar_hits_not_below_the_vehicle():
+    """A tilted vehicle's lidar hits the surface h·tan(tilt) away from below it. Over a glint
+    0.1 m beside the pad, leaning toward the pad, the lidar sees the deck: that sample belongs
+    to the point it hit, not to the glint (campaign seed 300073: a glint beside the pad was
+    sampled as deck, beacon and glint compared equal, the vehicle held until the timeout)."""
+    from apron_estimator.horizontal import HorizontalTracker
+    tr = HorizontalTracker()
+    glint = (0.625, 0.0)                                       # pad edge at 0.525
+    t = _hover_track(tr, 0.0, 1.2, glint, 0.6)
+    assert tr.events['probes'] == 1
+    # over the glint, leaning toward the pad: the lidar spot is 0.2 m back, on the deck
+    t = _hover_track(tr, t, 3.0, glint, 0.6, spot=(-0.2, 0.0), vehicle=glint, start=(0.0, 0.0))
+    t = _hover_track(tr, t, 1.5, glint, 0.6, spot=(-0.2, 0.0), vehicle=glint)
+    assert tr.ambiguous and tr.events['rivals_rejected'] == 0  # no evidence about the glint
+    # level again: the spot is on the glint, the ground
+    t = _hover_track(tr, t, 1.0, glint, 0.0, vehicle=glint)
+    assert tr.events['rivals_rejected'] == 1 and not tr.ambiguous
+
+
+def test_the_estimator_passes_the_lidar_spot_of_a_tilted_vehicle():
+    """range · (−R e3), horizontally: pitch θ (nose down, yaw 0: the thrust axis leans
+    forward) at height h hits h·tan θ behind (−x); roll φ (right side down) hits h·tan φ to
+    the left (+y) — the lidar points along −z body, the opposite of the lean."""
+    seen = []
+    est = ApronEstimator()
+    est.horizontal.update = lambda t, c, h, s=None, spot=(0.0, 0.0): seen.append(spot)
+    h = 1.5
+    for k, (roll, pitch) in enumerate(((0.0, 0.1), (0.1, 0.0))):
+        t = 1.0 + k
+        est.on_attitude(t - 0.01, roll, pitch, 0.0)
+        est.on_attitude(t, roll, pitch, 0.0)
+        est.on_local_position(t, (0.0, 0.0, h), (0.0, 0.0, 0.0))
+        est.on_lidar(t, h / (math.cos(roll) * math.cos(pitch)))
+        est.on_camera(t, [PixyBlock(1, 160.0, 100.0, 10.0, 10.0)])
+    assert seen[0] == pytest.approx((-h * math.tan(0.1), 0.0), abs=1e-9)
+    assert seen[1] == pytest.approx((0.0, h * math.tan(0.1)), abs=1e-9)

@@ -275,18 +275,29 @@ class HorizontalParams:
         return self.sigma0_m + self.sigma_per_m * max(0.0, height_m)
 
 
+_SAMPLED = -math.inf   # ``t_over`` once the current visit has given its first settled sample
+
+
 def _sample(t_over: float | None, surface: float | None, t_s: float, surface_m: float,
             dwell_s: float) -> tuple[float, float | None]:
-    """Surface evidence while hovering over a hypothesis: nothing for the first ``dwell_s``,
-    then a running average (α = 0.1 per frame) that starts at the first settled sample."""
+    """Surface evidence while hovering over a hypothesis: nothing for the first ``dwell_s``
+    of a visit, then the *lowest* surface level seen during this visit (the previous visit's
+    value is replaced at the first settled frame).
+
+    The lowest, not an average: a beacon sits on a deck that extends all around it, so any
+    ground seen within ``verify_radius_m`` of a hypothesis (a glint at or just inside a pad
+    edge, the lidar spot displaced by the tilt) marks it as not the beacon, and an average
+    took in the deck seen while leaving a glint beside the edge (campaign seed 100058: the
+    glint's ground 0.05 m averaged up to 0.44 m, too close to the deck's 0.59 m: endless hold).
+    The levels are piecewise constant (surface steps only), so the minimum carries no noise.
+    ``t_over`` None = not over it; a time = hovering since then; ``_SAMPLED`` = settled."""
     if t_over is None:
-        return t_s, surface
+        return t_s, surface                 # a visit starts
+    if t_over == _SAMPLED:
+        return t_over, min(surface, surface_m)
     if t_s - t_over < dwell_s:
         return t_over, surface
-    if surface is None or t_s - t_over < dwell_s + 1e-3 + 0.05:
-        # first settled frame of this visit: restart the average here
-        return t_over, surface_m if surface is None else surface + 0.5 * (surface_m - surface)
-    return t_over, surface + 0.1 * (surface_m - surface)
+    return _SAMPLED, surface_m              # first settled frame of this visit
 
 
 class _Rival:
@@ -395,7 +406,8 @@ class HorizontalTracker:
             self.events['acquired'] += 1
 
     def update(self, t_s: float, candidates: list[tuple[float, float]],
-               height_m: float, surface_m: float | None = None) -> bool:
+               height_m: float, surface_m: float | None = None,
+               spot_m: tuple[float, float] = (0.0, 0.0)) -> bool:
         """One camera frame: candidate beacon offsets (ENU, m), best first; True if accepted.
 
         ``t_s`` is the exposure stamp; frames must be strictly in order (else rejected and
@@ -404,6 +416,8 @@ class HorizontalTracker:
         without a detection. ``surface_m`` is the level of the surface under the vehicle at t_s,
         None if unknown: it resolves rivals. Only differences matter; ApronEstimator passes
         ``VerticalFilter.surface_level_m`` (the surface steps, without the heave).
+        ``spot_m`` is where that surface was seen, horizontally from the vehicle (ENU): the
+        lidar spot, displaced by the tilt; a hypothesis is sampled while the spot is near it.
         """
         if not (math.isfinite(t_s) and math.isfinite(height_m)):
             self.rejected['nan'] += 1
@@ -454,7 +468,7 @@ class HorizontalTracker:
         self.rejected['gated'] += len(good) - 1
         kf.update(best[0], best[1], r)
         if self.mode == 'tracking' and (len(good) > 1 or self.rivals):
-            self._rivals(t_s, good, best, surface_m)
+            self._rivals(t_s, good, best, surface_m, spot_m)
         self.last_nis = best_nis
         self.t_last_accept = t_s
         self.visible = True
@@ -494,7 +508,8 @@ class HorizontalTracker:
                     break
 
     def _rivals(self, t_s: float, good: list[tuple[float, float]],
-                best: tuple[float, float], surface_m: float | None) -> None:
+                best: tuple[float, float], surface_m: float | None,
+                spot_m: tuple[float, float] = (0.0, 0.0)) -> None:
         """Associate the unexplained detections with rivals, sample the surface under the
         track and the rivals, resolve or probe; refresh the ambiguity spread.
 
@@ -523,16 +538,17 @@ class HorizontalTracker:
             near.t_seen = t_s
         rivals[:] = [rv for rv in rivals if t_s - rv.t_seen <= (
             p.rejected_rival_timeout_s if rv.rejected else p.rival_timeout_s)]
-        # surface samples: the vehicle hovers over a hypothesis (rel = beacon − vehicle ≈ 0)
+        # surface samples: the lidar spot is on a hypothesis (rel = beacon − vehicle ≈ spot)
         r2 = p.verify_radius_m * p.verify_radius_m
         if surface_m is not None:
-            if kf.px * kf.px + kf.py * kf.py < r2:
+            ex, ey = kf.px - spot_m[0], kf.py - spot_m[1]
+            if ex * ex + ey * ey < r2:
                 self.t_over, self.surface = _sample(self.t_over, self.surface, t_s,
                                                     surface_m, p.verify_dwell_s)
             else:
                 self.t_over = None
             for rv in rivals:
-                if (kf.px + rv.dx) ** 2 + (kf.py + rv.dy) ** 2 < r2:
+                if (ex + rv.dx) ** 2 + (ey + rv.dy) ** 2 < r2:
                     rv.t_over, rv.surface = _sample(rv.t_over, rv.surface, t_s, surface_m,
                                                     p.verify_dwell_s)
                 else:
