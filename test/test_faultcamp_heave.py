@@ -253,3 +253,44 @@ def test_the_estimator_passes_the_lidar_spot_of_a_tilted_vehicle():
         est.on_camera(t, [PixyBlock(1, 160.0, 100.0, 10.0, 10.0)])
     assert seen[0] == pytest.approx((-h * math.tan(0.1), 0.0), abs=1e-9)
     assert seen[1] == pytest.approx((0.0, h * math.tan(0.1)), abs=1e-9)
+
+
+def test_a_probe_stays_ambiguous_while_the_verified_beacon_is_out_of_view():
+    """Campaign seed 100052: the tracker probed a glint beside the pad; over it (on the
+    ground) the beacon left the image and its rival timed out after ``rival_timeout_s`` while
+    the glint had no sample yet: the glint became the only, unambiguous hypothesis and the
+    planner descended on it (edge strike). A rival with a surface sample is evidence: kept
+    while the track is unverified."""
+    from apron_estimator.horizontal import HorizontalTracker
+    tr = HorizontalTracker()
+    glint = (0.65, 0.0)
+    t = _hover_track(tr, 0.0, 1.2, glint, 0.6)                 # beacon verified: deck
+    assert tr.events['probes'] == 1 and tr.ambiguous
+    t = _hover_track(tr, t, 3.0, glint, 0.6, vehicle=glint, start=(0.0, 0.0),
+                     spot=(-0.3, 0.0))                         # leaning: spot off the glint
+    for _ in range(150):                                       # 3 s: only the glint in view
+        t += 0.02
+        tr.on_accel(t, 0.0, 0.0)
+        tr.update(t, [(0.0, 0.0)], 1.9, 0.6, (-0.3, 0.0))
+    assert tr.tracked and tr.ambiguous                         # no descent on the glint
+    _, _, _, _, var_x, var_y, _, _ = tr.state(t)
+    assert var_x + var_y > 0.2 ** 2
+
+
+@pytest.mark.parametrize('seed', range(6))
+def test_random_flickers_never_confirm_a_rival(seed):
+    """One random blob per frame anywhere within ±1 m (50 Hz, 10 s): some fall into a
+    rival's gate now and then (~3 % of frames), which confirmed a 'rival' within seconds
+    and made the tracker probe empty places. A persistent glint is seen in most frames."""
+    import random
+
+    from apron_estimator.horizontal import HorizontalTracker
+    rng = random.Random(seed)
+    tr = HorizontalTracker()
+    t = 0.0
+    for _ in range(500):
+        t += 0.02
+        tr.update(t, [(rng.gauss(0, 0.01), rng.gauss(0, 0.01)),
+                      (rng.uniform(-1, 1), rng.uniform(-1, 1))], 1.5, 0.6)
+        assert not tr.ambiguous
+    assert tr.tracked and tr.events['probes'] == 0

@@ -241,11 +241,14 @@ class HorizontalParams:
     accel_history_s: float = 3.0
     # rival candidates (false blobs): see the module docstring
     rival_gate_m: float = 0.2         # a detection this close to a rival's offset is that rival
-    rival_confirm_hits: int = 5       # detections before a rival makes the target ambiguous
+    rival_confirm_hits: int = 5       # net detections (a frame without it takes one back)
+    #                                   before a rival makes the target ambiguous
     rival_timeout_s: float = 1.0      # an unresolved rival unseen this long is dropped
     rejected_rival_timeout_s: float = 30.0  # a rejected rival is remembered this long
     ambiguity_min_sep_m: float = 0.15  # rivals closer than this to the track do not matter
-    verify_radius_m: float = 0.12     # vehicle this close over a hypothesis → surface sample
+    verify_radius_m: float = 0.2      # lidar spot this close to a hypothesis → surface sample
+    #                                   (≥ the gear's half-width: ground that close to a
+    #                                   hypothesis makes it no landing point anyway)
     verify_dwell_s: float = 0.5       # ... after hovering there this long (filter settled)
     deck_rise_m: float = 0.2          # the beacon's surface is higher by at least this
     max_rivals: int = 4
@@ -531,13 +534,33 @@ class HorizontalTracker:
             if near is None:
                 if len(rivals) < p.max_rivals:
                     rivals.append(_Rival(dx, dy, t_s))
+                elif p.max_rivals:
+                    # full: the weakest unconfirmed one (a flicker) makes room
+                    weak = min(rivals, key=lambda rv: (rv.rejected or rv.surface is not None,
+                                                       rv.hits))
+                    if not (weak.rejected or weak.surface is not None) and (
+                            weak.hits < p.rival_confirm_hits):
+                        rivals[rivals.index(weak)] = _Rival(dx, dy, t_s)
                 continue
             near.dx += 0.2 * (dx - near.dx)    # slow average: both points are near static
             near.dy += 0.2 * (dy - near.dy)
             near.hits += 1
             near.t_seen = t_s
-        rivals[:] = [rv for rv in rivals if t_s - rv.t_seen <= (
-            p.rejected_rival_timeout_s if rv.rejected else p.rival_timeout_s)]
+        # leaky confirmation: a frame without an unconfirmed rival takes a hit back, so only
+        # a blob seen in most frames (a persistent glint) confirms; random flickers that
+        # happen to fall in the gate now and then never do
+        for rv in rivals:
+            if rv.t_seen != t_s and 0 < rv.hits < p.rival_confirm_hits:
+                rv.hits -= 1
+        # a rival with a surface sample is evidence, not a flicker: kept like a rejected one,
+        # and for as long as the track itself is unverified (a probe): otherwise the beacon
+        # leaving the image while the vehicle probes a glint made the glint unambiguous and
+        # the planner descended on it (seed 100052, edge strike)
+        unverified = self.surface is None
+        rivals[:] = [rv for rv in rivals if (unverified and rv.surface is not None)
+                     or t_s - rv.t_seen <= (p.rejected_rival_timeout_s
+                                            if rv.rejected or rv.surface is not None
+                                            else p.rival_timeout_s)]
         # surface samples: the lidar spot is on a hypothesis (rel = beacon − vehicle ≈ spot)
         r2 = p.verify_radius_m * p.verify_radius_m
         if surface_m is not None:
@@ -548,7 +571,8 @@ class HorizontalTracker:
             else:
                 self.t_over = None
             for rv in rivals:
-                if (ex + rv.dx) ** 2 + (ey + rv.dy) ** 2 < r2:
+                # only confirmed rivals: a sample keeps a rival (above), a flicker must not
+                if rv.hits >= p.rival_confirm_hits and (ex + rv.dx) ** 2 + (ey + rv.dy) ** 2 < r2:
                     rv.t_over, rv.surface = _sample(rv.t_over, rv.surface, t_s, surface_m,
                                                     p.verify_dwell_s)
                 else:
