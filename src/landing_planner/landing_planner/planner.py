@@ -206,6 +206,8 @@ class LandingPlanner:
         self._t_last: float | None = None
         self._t_target_ok = -math.inf
         self._ambiguous = False     # target σ above max_target_sigma_m (README "False blobs")
+        self._accepted = False      # the estimator's current track passed the area gate
+        self._rel: tuple[float, float] | None = None   # last tracked camera offset
         self._last_target: tuple[float, float] | None = None
         self._pos: tuple[float, float, float] | None = None
         self._vel: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -335,15 +337,24 @@ class LandingPlanner:
         return True
 
     def _read_target(self, t_s: float, apron: ApronState) -> tuple[bool, tuple[float, float]]:
+        self._rel = None
         if not apron.tracked:
+            self._accepted = False
             return False, (0.0, 0.0)
         ap, av, rp = apron.apron_position_m, apron.apron_velocity_mps, apron.rel_position_m
         if not _finite(ap[0], ap[1], av[0], av[1], rp[0], rp[1]):
             self.rejected['nan'] += 1
             return False, (0.0, 0.0)
+        self._rel = (rp[0], rp[1])
         lx, ly = self.params.landing_area_m
-        if math.hypot(ap[0] - lx, ap[1] - ly) > self.params.max_xy_dist_m:
+        if (not self._accepted
+                and math.hypot(ap[0] - lx, ap[1] - ly) > self.params.max_xy_dist_m):
             return False, (0.0, 0.0)   # like ArduPilot PLND_XY_DIST_MAX
+        # the gate is for acquisition: a GPS jump moves the vehicle's and the apron's
+        # reported positions together; it must not drop a track being followed (fault_gps_jump
+        # seed 200032: bias + 1.5 m jump ~3 m, the target flickered out of the gate, three
+        # searches, a FALLBACK from 3.3 m on a drifting GPS hold, edge strike)
+        self._accepted = True
         var = apron.rel_position_var_m2
         sig = self.params.max_target_sigma_m
         # a NaN variance reads as ambiguous (the comparison below is then False)
@@ -393,7 +404,15 @@ class LandingPlanner:
         else:
             self._enter(Mode.FALLBACK, t_s, f'{why}: {self.searches} search attempts used, '
                         'landing where it is (Step 14)')
+            self._l.over_deck = self._over_deck()
         self._on_entry(t_s)
+
+    def _over_deck(self) -> bool:
+        """A tracked, unambiguous beacon right below (camera offset within the re-align
+        radius): a FALLBACK then follows it down instead of holding a GPS position."""
+        p = self.params
+        return (self._rel is not None and not self._ambiguous
+                and math.hypot(*self._rel) <= p.acceptance_radius_m * p.acceptance_hysteresis)
 
     def _on_entry(self, t_s: float) -> None:
         """Entry actions; run lazily once the vehicle position is known."""
@@ -608,7 +627,7 @@ class LandingPlanner:
         latch = self._l
         if mode in (Mode.ALIGN, Mode.DESCEND, Mode.FINAL) or (
                 mode is Mode.FALLBACK and latch.over_deck):
-            if target_ok:
+            if target_ok or (mode is Mode.FALLBACK and self._rel is not None):
                 ax, ay = apron.apron_position_m
                 fx, fy = apron.apron_velocity_mps
                 # slew toward the target: move with the deck, close the gap at align_speed
