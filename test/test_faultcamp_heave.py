@@ -294,3 +294,26 @@ def test_random_flickers_never_confirm_a_rival(seed):
                       (rng.uniform(-1, 1), rng.uniform(-1, 1))], 1.5, 0.6)
         assert not tr.ambiguous
     assert tr.tracked and tr.events['probes'] == 0
+
+
+def test_readings_saturated_at_the_range_limit_never_re_base_the_surface():
+    """`fault_lidar_outliers` seed 300086: 0.3 m above the deck in FINAL, three −1 m outliers
+    in a row were clipped to the lidar's minimum range, 0.05 m: mutually consistent, they
+    re-based the surface 0.28 m up; the planner shifted the reference down with it, the
+    thrust was cut and the vehicle hit the deck at 1.10 m/s. A reading at a range limit is
+    the sensor's saturated output, not a surface."""
+    vf = VerticalFilter()
+    t = 0.0
+    for _ in range(100):
+        vf.on_accel(t, 0.0)
+        vf.on_altitude(t, 0.9, 0.0)
+        vf.on_lidar(t, 0.3)
+        t = round(t + DT, 9)
+    epoch, surface = vf.surface_epoch, vf.state(t).surface_height_m
+    for _ in range(5):
+        vf.on_accel(t, 0.0)
+        vf.on_lidar(t, vf.params.range_min_m)
+        t = round(t + DT, 9)
+    assert vf.surface_epoch == epoch
+    assert vf.state(t).surface_height_m == pytest.approx(surface, abs=0.01)
+    assert vf.rejected['range'] == 5

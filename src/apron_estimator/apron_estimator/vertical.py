@@ -271,7 +271,7 @@ class VerticalFilter:
             self.rejected['nan' if not math.isinf(range_m) else 'dropout'] += 1
             return
         p = self.params
-        if not p.range_min_m <= range_m <= p.range_max_m:
+        if not p.range_min_m < range_m < p.range_max_m:   # at a limit: saturated, no surface
             self.rejected['range'] += 1
             return
         if abs(roll_rad) > p.max_tilt_rad or abs(pitch_rad) > p.max_tilt_rad:
