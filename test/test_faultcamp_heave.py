@@ -317,3 +317,38 @@ def test_readings_saturated_at_the_range_limit_never_re_base_the_surface():
     assert vf.surface_epoch == epoch
     assert vf.state(t).surface_height_m == pytest.approx(surface, abs=0.01)
     assert vf.rejected['range'] == 5
+
+
+def test_an_unverified_track_keeps_its_confirmed_rival_out_of_view():
+    """Campaign seed 300054: the track restarted on the glint (the blob in view), the beacon
+    became a confirmed but unsampled rival; hovering over the glint, the beacon left the
+    image, its rival timed out, the glint was the only hypothesis and the planner descended
+    on it (edge strike). An unverified track keeps its confirmed rivals."""
+    from apron_estimator.horizontal import HorizontalTracker
+    tr = HorizontalTracker()
+    t = 0.0
+    for _ in range(60):                      # glint acquired first, beacon 0.6 m away
+        t += 0.02
+        tr.on_accel(t, 0.0, 0.0)
+        tr.update(t, [(0.0, 0.0), (-0.6, 0.0)], 1.8, 0.0, (-0.3, 0.0))
+    assert tr.ambiguous and tr.surface is None
+    for _ in range(150):                     # 3 s: the beacon out of view, spot off the track
+        t += 0.02
+        tr.on_accel(t, 0.0, 0.0)
+        tr.update(t, [(0.0, 0.0)], 1.8, 0.0, (-0.3, 0.0))
+    assert tr.tracked and tr.ambiguous
+
+
+def test_a_transient_blob_beside_a_verified_beacon_is_not_probed_after_it_vanished():
+    from apron_estimator.horizontal import HorizontalTracker
+    tr = HorizontalTracker()
+    t = 0.0
+    for k in range(150):                     # beacon verified; a reflection for 0.4 s only
+        t += 0.02
+        tr.on_accel(t, 0.0, 0.0)
+        blobs = [(0.0, 0.0)] + ([(0.5, 0.3)] if 10 <= k < 30 else [])
+        tr.update(t, blobs, 1.4, 0.6)
+    assert tr.surface is not None and tr.events['probes'] <= 1
+    assert not tr.ambiguous
+    x, y, *_ = tr.state(t)
+    assert math.hypot(x, y) < 0.05

@@ -552,14 +552,17 @@ class HorizontalTracker:
         for rv in rivals:
             if rv.t_seen != t_s and 0 < rv.hits < p.rival_confirm_hits:
                 rv.hits -= 1
-        # a rival with a surface sample is evidence, not a flicker: kept like a rejected one,
-        # and for as long as the track itself is unverified (a probe): otherwise the beacon
-        # leaving the image while the vehicle probes a glint made the glint unambiguous and
-        # the planner descended on it (seed 100052, edge strike)
+        # While the track itself is unverified (a probe, or a track restarted on whichever
+        # blob was in view) every confirmed, unrejected rival is kept: otherwise the beacon
+        # leaving the image while the vehicle hovers over a glint made the glint the only,
+        # unambiguous hypothesis and the planner descended on it (seeds 100052, 300054: edge
+        # strikes). Once the track is verified, the usual timeouts apply.
         unverified = self.surface is None
-        rivals[:] = [rv for rv in rivals if (unverified and rv.surface is not None)
-                     or t_s - rv.t_seen <= (p.rejected_rival_timeout_s
-                                            if rv.rejected or rv.surface is not None
+        confirm = p.rival_confirm_hits
+        rivals[:] = [rv for rv in rivals
+                     if (unverified and not rv.rejected
+                         and (rv.surface is not None or rv.hits >= confirm))
+                     or t_s - rv.t_seen <= (p.rejected_rival_timeout_s if rv.rejected
                                             else p.rival_timeout_s)]
         # surface samples: the lidar spot is on a hypothesis (rel = beacon − vehicle ≈ spot)
         r2 = p.verify_radius_m * p.verify_radius_m
@@ -596,7 +599,9 @@ class HorizontalTracker:
         open_ = [rv for rv in self.rivals if not rv.rejected
                  and rv.hits >= p.rival_confirm_hits and rv.dx * rv.dx + rv.dy * rv.dy > sep2]
         if open_ and self.surface is not None:
-            unvisited = [rv for rv in open_ if rv.surface is None]
+            # (only one in view lately: a kept rival that vanished is not worth a flight)
+            unvisited = [rv for rv in open_ if rv.surface is None
+                         and t_s - rv.t_seen <= p.rival_timeout_s]
             if unvisited:
                 # the track is verified, a rival is not: fly there (the planner follows)
                 self._switch(unvisited[0], reject_old=False)
