@@ -206,7 +206,6 @@ class LandingPlanner:
         self._t_last: float | None = None
         self._t_target_ok = -math.inf
         self._ambiguous = False     # target σ above max_target_sigma_m (README "False blobs")
-        self._accepted = False      # the estimator's current track passed the area gate
         self._rel: tuple[float, float] | None = None   # last tracked camera offset
         self._last_target: tuple[float, float] | None = None
         self._pos: tuple[float, float, float] | None = None
@@ -339,7 +338,6 @@ class LandingPlanner:
     def _read_target(self, t_s: float, apron: ApronState) -> tuple[bool, tuple[float, float]]:
         self._rel = None
         if not apron.tracked:
-            self._accepted = False
             return False, (0.0, 0.0)
         ap, av, rp = apron.apron_position_m, apron.apron_velocity_mps, apron.rel_position_m
         if not _finite(ap[0], ap[1], av[0], av[1], rp[0], rp[1]):
@@ -347,14 +345,11 @@ class LandingPlanner:
             return False, (0.0, 0.0)
         self._rel = (rp[0], rp[1])
         lx, ly = self.params.landing_area_m
-        if (not self._accepted
-                and math.hypot(ap[0] - lx, ap[1] - ly) > self.params.max_xy_dist_m):
-            return False, (0.0, 0.0)   # like ArduPilot PLND_XY_DIST_MAX
-        # the gate is for acquisition: a GPS jump moves the vehicle's and the apron's
-        # reported positions together; it must not drop a track being followed (fault_gps_jump
-        # seed 200032: bias + 1.5 m jump ~3 m, the target flickered out of the gate, three
-        # searches, a FALLBACK from 3.3 m on a drifting GPS hold, edge strike)
-        self._accepted = True
+        if math.hypot(ap[0] - lx, ap[1] - ly) > self.params.max_xy_dist_m:
+            # like ArduPilot PLND_XY_DIST_MAX. Kept for a followed track too: it also guards
+            # against a diverging estimate (sea_state_4 seed 100002 chased a track 3-5 m off
+            # without it); a FALLBACK right over the gated beacon still follows it (_rel)
+            return False, (0.0, 0.0)
         var = apron.rel_position_var_m2
         sig = self.params.max_target_sigma_m
         # a NaN variance reads as ambiguous (the comparison below is then False)
