@@ -25,7 +25,8 @@ out in scalar closed form (``test_estimator_horizontal`` proves every step equal
   squared offset to the reported variance (the spread of the two-hypothesis mixture), so the
   planner does not descend. A rival is resolved with the lidar: the beacon sits on the deck,
   so the surface under it is higher than under a blob beside the deck. The tracker records
-  the surface height seen while the vehicle hovers over each hypothesis; an unvisited rival
+  the lowest surface *level* (heave-free: the vertical filter's surface steps) seen while the
+  lidar spot is on each hypothesis (README, decisions 13-13c); an unvisited rival
   is *probed* (the track is moved onto it so that the planner flies there), and the lower
   hypothesis is rejected (the track switches to the higher one if needed).
 """
