@@ -59,10 +59,11 @@ def test_summary_statistics_and_json_shape():
     results = [
         RunResult(seed=i, scenario='s', controller='dob', landed_on_deck=True, success=True,
                   contact_kind='pad', horizontal_error_m=0.01 * i, touchdown_speed_mps=0.1 * i,
-                  time_to_land_s=10.0 + i, sim_time_s=11.0 + i)
+                  time_to_land_s=10.0 + i, sim_time_s=11.0 + i, outcome='deck')
         for i in range(1, 5)
     ] + [RunResult(seed=9, scenario='s', controller='dob', contact_kind='ground',
-                   fallback=True, time_to_land_s=50.0, sim_time_s=50.0, reason='fallback')]
+                   fallback=True, time_to_land_s=50.0, sim_time_s=50.0, reason='fallback',
+                   outcome='fallback')]
     report = summarize(results, 's', 'dob', 1, wall_time_s=2.0)
     assert report['success_rate'] == pytest.approx(0.8)
     assert report['fallback_rate'] == pytest.approx(0.2)
@@ -70,10 +71,12 @@ def test_summary_statistics_and_json_shape():
     assert report['horizontal_error_m']['p50'] == pytest.approx(0.025)
     assert report['touchdown_speed_mps']['max'] == pytest.approx(0.4)
     assert report['realtime_factor'] == pytest.approx((12 + 13 + 14 + 15 + 50) / 2.0)
-    assert report['failures'] == [{'seed': 9, 'reason': 'fallback'}]
+    assert report['failures'] == [{'seed': 9, 'reason': 'fallback', 'outcome': 'fallback'}]
+    assert report['outcomes'] == {'deck': 4, 'fallback': 1, 'hold': 0, 'crash': 0,
+                                  'unstable': 0}
     for key in ('scenario', 'controller', 'runs', 'seed', 'success_rate', 'fallback_rate',
                 'crash_rate', 'horizontal_error_m', 'touchdown_speed_mps', 'time_to_land_s',
-                'wall_time_s', 'realtime_factor', 'failures'):
+                'wall_time_s', 'realtime_factor', 'failures', 'outcomes'):
         assert key in report
     json.dumps(report, allow_nan=False)
     assert 'success' in format_table([report])

@@ -71,6 +71,7 @@ class ApronEstimator:
         self._pos: tuple[float, tuple[float, float, float], tuple[float, float, float]] | None
         self._pos = None
         self._t_camera = -math.inf
+        self._lidar_spot = (0.0, 0.0)
 
     @property
     def rejected(self) -> dict[str, int]:
@@ -160,6 +161,14 @@ class ApronEstimator:
         vf = self.vertical
         epoch = vf.surface_epoch
         vf.on_lidar(t_s, range_m, roll, pitch)
+        if att is not None and vf.t_last_range == t_s:
+            # where the lidar hits, horizontally from the body origin (ENU): range · (−R e3)
+            # — a tilted vehicle samples the surface up to h·tan(tilt) away from below it
+            cr, sr = math.cos(roll), math.sin(roll)
+            sp = math.sin(pitch)
+            cy, sy = math.cos(att[2]), math.sin(att[2])
+            r = vf.last_range_m
+            self._lidar_spot = (-r * (cy * sp * cr + sy * sr), -r * (sy * sp * cr - cy * sr))
         if vf.surface_epoch != epoch:
             # The camera offsets scale with the height (29)-(30): a re-base from h_before to
             # h_after rescales every offset measured from now on by h_after / h_before.
@@ -211,13 +220,15 @@ class ApronEstimator:
                 self._own['off_deck'] += 1
             else:
                 candidates.append(c)
-        # the surface under the vehicle from the latest raw lidar height (not the filter's
-        # surface state, which lags a re-base at a deck edge): resolves false blobs
+        # the level of the surface under the vehicle (the sum of the surface steps the
+        # vertical filter has re-based on): resolves false blobs. Not the absolute surface
+        # height: samples over two hypotheses are taken seconds apart, and the deck heaves
+        # (and the altitude drifts) by more than a deck's rise in between (README)
         vf = self.vertical
         surface = None
-        if vf.last_h_m is not None and self._pos is not None and self._recent_lidar(t_s):
-            surface = self._pos[1][2] - vf.last_h_m
-        self.horizontal.update(t_s, candidates, height, surface)
+        if vf.initialised and self._recent_lidar(t_s):
+            surface = vf.surface_level_m
+        self.horizontal.update(t_s, candidates, height, surface, self._lidar_spot)
 
     def _height_at(self, t_s: float) -> float | None:
         vf = self.vertical

@@ -25,7 +25,8 @@ out in scalar closed form (``test_estimator_horizontal`` proves every step equal
   squared offset to the reported variance (the spread of the two-hypothesis mixture), so the
   planner does not descend. A rival is resolved with the lidar: the beacon sits on the deck,
   so the surface under it is higher than under a blob beside the deck. The tracker records
-  the surface height seen while the vehicle hovers over each hypothesis; an unvisited rival
+  the lowest surface *level* (heave-free: the vertical filter's surface steps) seen while the
+  lidar spot is on each hypothesis (README, decisions 13-13c); an unvisited rival
   is *probed* (the track is moved onto it so that the planner flies there), and the lower
   hypothesis is rejected (the track switches to the higher one if needed).
 """
@@ -241,11 +242,14 @@ class HorizontalParams:
     accel_history_s: float = 3.0
     # rival candidates (false blobs): see the module docstring
     rival_gate_m: float = 0.2         # a detection this close to a rival's offset is that rival
-    rival_confirm_hits: int = 5       # detections before a rival makes the target ambiguous
+    rival_confirm_hits: int = 5       # net detections (a frame without it takes one back)
+    #                                   before a rival makes the target ambiguous
     rival_timeout_s: float = 1.0      # an unresolved rival unseen this long is dropped
     rejected_rival_timeout_s: float = 30.0  # a rejected rival is remembered this long
     ambiguity_min_sep_m: float = 0.15  # rivals closer than this to the track do not matter
-    verify_radius_m: float = 0.12     # vehicle this close over a hypothesis → surface sample
+    verify_radius_m: float = 0.2      # lidar spot this close to a hypothesis → surface sample
+    #                                   (≥ the gear's half-width: ground that close to a
+    #                                   hypothesis makes it no landing point anyway)
     verify_dwell_s: float = 0.5       # ... after hovering there this long (filter settled)
     deck_rise_m: float = 0.2          # the beacon's surface is higher by at least this
     max_rivals: int = 4
@@ -275,18 +279,29 @@ class HorizontalParams:
         return self.sigma0_m + self.sigma_per_m * max(0.0, height_m)
 
 
+_SAMPLED = -math.inf   # ``t_over`` once the current visit has given its first settled sample
+
+
 def _sample(t_over: float | None, surface: float | None, t_s: float, surface_m: float,
             dwell_s: float) -> tuple[float, float | None]:
-    """Surface evidence while hovering over a hypothesis: nothing for the first ``dwell_s``,
-    then a running average (α = 0.1 per frame) that starts at the first settled sample."""
+    """Surface evidence while hovering over a hypothesis: nothing for the first ``dwell_s``
+    of a visit, then the *lowest* surface level seen during this visit (the previous visit's
+    value is replaced at the first settled frame).
+
+    The lowest, not an average: a beacon sits on a deck that extends all around it, so any
+    ground seen within ``verify_radius_m`` of a hypothesis (a glint at or just inside a pad
+    edge, the lidar spot displaced by the tilt) marks it as not the beacon, and an average
+    took in the deck seen while leaving a glint beside the edge (campaign seed 100058: the
+    glint's ground 0.05 m averaged up to 0.44 m, too close to the deck's 0.59 m: endless hold).
+    The levels are piecewise constant (surface steps only), so the minimum carries no noise.
+    ``t_over`` None = not over it; a time = hovering since then; ``_SAMPLED`` = settled."""
     if t_over is None:
-        return t_s, surface
+        return t_s, surface                 # a visit starts
+    if t_over == _SAMPLED:
+        return t_over, min(surface, surface_m)
     if t_s - t_over < dwell_s:
         return t_over, surface
-    if surface is None or t_s - t_over < dwell_s + 1e-3 + 0.05:
-        # first settled frame of this visit: restart the average here
-        return t_over, surface_m if surface is None else surface + 0.5 * (surface_m - surface)
-    return t_over, surface + 0.1 * (surface_m - surface)
+    return _SAMPLED, surface_m              # first settled frame of this visit
 
 
 class _Rival:
@@ -359,6 +374,11 @@ class HorizontalTracker:
         if self.t_filter is None or not (math.isfinite(k) and k > 0.0):
             return
         self.kf.scale(k)
+        # the rivals' offsets are measurements in the same scale: a rival not rescaled no
+        # longer matches its own blob (a new, unvisited rival each time: endless probing)
+        for rv in self.rivals:
+            rv.dx *= k
+            rv.dy *= k
         self.events['rescaled'] += 1
 
     def _control(self, t0: float, t1: float) -> tuple[float, float, float, float]:
@@ -390,14 +410,18 @@ class HorizontalTracker:
             self.events['acquired'] += 1
 
     def update(self, t_s: float, candidates: list[tuple[float, float]],
-               height_m: float, surface_m: float | None = None) -> bool:
+               height_m: float, surface_m: float | None = None,
+               spot_m: tuple[float, float] = (0.0, 0.0)) -> bool:
         """One camera frame: candidate beacon offsets (ENU, m), best first; True if accepted.
 
         ``t_s`` is the exposure stamp; frames must be strictly in order (else rejected and
         counted). Among the candidates passing the NIS gate the one with the smallest NIS is
         used; others are counted as ``gated`` and feed the rivals. An empty list is a frame
-        without a detection. ``surface_m`` is the surface height under the vehicle at t_s
-        (vertical filter), None if unknown: it resolves rivals.
+        without a detection. ``surface_m`` is the level of the surface under the vehicle at t_s,
+        None if unknown: it resolves rivals. Only differences matter; ApronEstimator passes
+        ``VerticalFilter.surface_level_m`` (the surface steps, without the heave).
+        ``spot_m`` is where that surface was seen, horizontally from the vehicle (ENU): the
+        lidar spot, displaced by the tilt; a hypothesis is sampled while the spot is near it.
         """
         if not (math.isfinite(t_s) and math.isfinite(height_m)):
             self.rejected['nan'] += 1
@@ -448,7 +472,7 @@ class HorizontalTracker:
         self.rejected['gated'] += len(good) - 1
         kf.update(best[0], best[1], r)
         if self.mode == 'tracking' and (len(good) > 1 or self.rivals):
-            self._rivals(t_s, good, best, surface_m)
+            self._rivals(t_s, good, best, surface_m, spot_m)
         self.last_nis = best_nis
         self.t_last_accept = t_s
         self.visible = True
@@ -488,7 +512,8 @@ class HorizontalTracker:
                     break
 
     def _rivals(self, t_s: float, good: list[tuple[float, float]],
-                best: tuple[float, float], surface_m: float | None) -> None:
+                best: tuple[float, float], surface_m: float | None,
+                spot_m: tuple[float, float] = (0.0, 0.0)) -> None:
         """Associate the unexplained detections with rivals, sample the surface under the
         track and the rivals, resolve or probe; refresh the ambiguity spread.
 
@@ -510,23 +535,48 @@ class HorizontalTracker:
             if near is None:
                 if len(rivals) < p.max_rivals:
                     rivals.append(_Rival(dx, dy, t_s))
+                elif p.max_rivals:
+                    # full: the weakest unconfirmed one (a flicker) makes room
+                    weak = min(rivals, key=lambda rv: (rv.rejected or rv.surface is not None,
+                                                       rv.hits))
+                    if not (weak.rejected or weak.surface is not None) and (
+                            weak.hits < p.rival_confirm_hits):
+                        rivals[rivals.index(weak)] = _Rival(dx, dy, t_s)
                 continue
             near.dx += 0.2 * (dx - near.dx)    # slow average: both points are near static
             near.dy += 0.2 * (dy - near.dy)
             near.hits += 1
             near.t_seen = t_s
-        rivals[:] = [rv for rv in rivals if t_s - rv.t_seen <= (
-            p.rejected_rival_timeout_s if rv.rejected else p.rival_timeout_s)]
-        # surface samples: the vehicle hovers over a hypothesis (rel = beacon − vehicle ≈ 0)
+        # leaky confirmation: a frame without an unconfirmed rival takes a hit back, so only
+        # a blob seen in most frames (a persistent glint) confirms; random flickers that
+        # happen to fall in the gate now and then never do
+        for rv in rivals:
+            if rv.t_seen != t_s and 0 < rv.hits < p.rival_confirm_hits:
+                rv.hits -= 1
+        # While the track itself is unverified (a probe, or a track restarted on whichever
+        # blob was in view) every confirmed, unrejected rival is kept: otherwise the beacon
+        # leaving the image while the vehicle hovers over a glint made the glint the only,
+        # unambiguous hypothesis and the planner descended on it (seeds 100052, 300054: edge
+        # strikes). Once the track is verified, the usual timeouts apply.
+        unverified = self.surface is None
+        confirm = p.rival_confirm_hits
+        rivals[:] = [rv for rv in rivals
+                     if (unverified and not rv.rejected
+                         and (rv.surface is not None or rv.hits >= confirm))
+                     or t_s - rv.t_seen <= (p.rejected_rival_timeout_s if rv.rejected
+                                            else p.rival_timeout_s)]
+        # surface samples: the lidar spot is on a hypothesis (rel = beacon − vehicle ≈ spot)
         r2 = p.verify_radius_m * p.verify_radius_m
         if surface_m is not None:
-            if kf.px * kf.px + kf.py * kf.py < r2:
+            ex, ey = kf.px - spot_m[0], kf.py - spot_m[1]
+            if ex * ex + ey * ey < r2:
                 self.t_over, self.surface = _sample(self.t_over, self.surface, t_s,
                                                     surface_m, p.verify_dwell_s)
             else:
                 self.t_over = None
             for rv in rivals:
-                if (kf.px + rv.dx) ** 2 + (kf.py + rv.dy) ** 2 < r2:
+                # only confirmed rivals: a sample keeps a rival (above), a flicker must not
+                if rv.hits >= p.rival_confirm_hits and (ex + rv.dx) ** 2 + (ey + rv.dy) ** 2 < r2:
                     rv.t_over, rv.surface = _sample(rv.t_over, rv.surface, t_s, surface_m,
                                                     p.verify_dwell_s)
                 else:
@@ -550,7 +600,9 @@ class HorizontalTracker:
         open_ = [rv for rv in self.rivals if not rv.rejected
                  and rv.hits >= p.rival_confirm_hits and rv.dx * rv.dx + rv.dy * rv.dy > sep2]
         if open_ and self.surface is not None:
-            unvisited = [rv for rv in open_ if rv.surface is None]
+            # (only one in view lately: a kept rival that vanished is not worth a flight)
+            unvisited = [rv for rv in open_ if rv.surface is None
+                         and t_s - rv.t_seen <= p.rival_timeout_s]
             if unvisited:
                 # the track is verified, a rival is not: fly there (the planner follows)
                 self._switch(unvisited[0], reject_old=False)

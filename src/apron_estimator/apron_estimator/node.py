@@ -129,8 +129,8 @@ ESTIMATOR_DESCRIPTIONS = {
                                            'long (s)',
     'horizontal.ambiguity_min_sep_m': 'false blobs: rivals closer (m) than this to the track do '
                                       'not matter',
-    'horizontal.verify_radius_m': 'false blobs: vehicle this close (m) over a hypothesis → '
-                                  'lidar surface sample',
+    'horizontal.verify_radius_m': 'false blobs: lidar spot this close (m) to a hypothesis → '
+                                  'surface sample',
     'horizontal.verify_dwell_s': 'false blobs: hover this long (s) before sampling',
     'horizontal.deck_rise_m': "false blobs: the beacon's surface is higher by at least this (m)",
     'horizontal.max_rivals': 'false blobs: rival hypotheses kept at most',

@@ -105,6 +105,7 @@ class VerticalFilter:
         self.initialised = False
         self.surface_epoch = 0
         self.last_rebase_m = 0.0
+        self.surface_level_m = 0.0           # sum of the re-base steps (see _rebase)
         self.t_lidar_ok: float | None = None
         self.last_h_m: float | None = None   # last tilt-corrected lidar height (raw)
         self.last_range_m: float | None = None
@@ -270,7 +271,7 @@ class VerticalFilter:
             self.rejected['nan' if not math.isinf(range_m) else 'dropout'] += 1
             return
         p = self.params
-        if not p.range_min_m <= range_m <= p.range_max_m:
+        if not p.range_min_m < range_m < p.range_max_m:   # at a limit: saturated, no surface
             self.rejected['range'] += 1
             return
         if abs(roll_rad) > p.max_tilt_rad or abs(pitch_rad) > p.max_tilt_rad:
@@ -351,6 +352,9 @@ class VerticalFilter:
         confirming samples); v_s = a_s = 0 with their prior covariance."""
         x = self.x
         self.last_rebase_m = jump_m
+        # the level of the surface below without its continuous motion (heave, which the
+        # filter tracks) nor the altitude's drift: only the steps, e.g. a deck edge
+        self.surface_level_m += jump_m
         self.surface_epoch += 1
         x[2], x[3], x[4] = x[2] + jump_m, 0.0, 0.0
         self._rebase_covariance(h)

@@ -5,7 +5,11 @@ The campaign JSON is a stable interface (other tools read it)::
     {"scenario", "controller", "runs", "seed", "success_rate", "fallback_rate", "crash_rate",
      "horizontal_error_m": {"p50", "p95", "max"}, "touchdown_speed_mps": {"p50", "p95", "max"},
      "time_to_land_s": {"p50", "p95"}, "wall_time_s", "realtime_factor",
-     "failures": [{"seed", "reason"}]}
+     "failures": [{"seed", "reason", "outcome"}],
+     "outcomes": {"deck", "fallback", "hold", "crash", "unstable"}}
+
+``outcomes`` counts the runs of each safety class (``deckland.runner.classify``,
+docs/failsafe.md); a failure's ``outcome`` is its class.
 
 Run ``i`` of a campaign with seed ``S`` flies seed ``S * 100000 + i``; any failure listed in the
 report is reproduced alone with ``deckland sim --scenario NAME --seed <that seed>``.
@@ -78,7 +82,10 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
         'max_thrust_n': _json_float(max((r.max_thrust_n for r in results), default=math.nan)),
         'wall_time_s': round(wall_time_s, 3),
         'realtime_factor': round(sim_time / wall_time_s, 1) if wall_time_s > 0 else 0.0,
-        'failures': [{'seed': r.seed, 'reason': r.reason} for r in results if not r.success],
+        'failures': [{'seed': r.seed, 'reason': r.reason, 'outcome': r.outcome}
+                     for r in results if not r.success],
+        'outcomes': {k: sum(r.outcome == k for r in results)
+                     for k in ('deck', 'fallback', 'hold', 'crash', 'unstable')},
     }
 
 
