@@ -10,6 +10,7 @@ import io
 import itertools
 import os
 from pathlib import Path
+import random
 import signal
 import statistics
 import subprocess
@@ -110,9 +111,12 @@ def args_for(verb, **kw):
 
 def test_topic_echo_hz_and_list_against_a_50hz_publisher(ros_context):
     context, executor = ros_context
-    talker = Talker(context, executor)
+    # topics of their own: other tests of this session publish vehicle/range too (the
+    # estimator-node helper, reliable), and a node they leave behind must not answer here
+    ns = f'/tools{random.SystemRandom().randrange(10**6)}'
+    talker = Talker(context, executor, prefix=ns)
 
-    a = args_for('echo', topic='pose', count=3)
+    a = args_for('echo', topic=ns.lstrip('/') + '/pose', count=3)
     assert topic.cmd_echo(a) == 0, a.err.getvalue()
     docs = [d for d in yaml.safe_load_all(a.out.getvalue().replace('\n---\n', '\n---\n'))
             if d is not None]
@@ -123,7 +127,7 @@ def test_topic_echo_hz_and_list_against_a_50hz_publisher(ros_context):
     assert a.out.getvalue().count('---\n') == 3
 
     # Best-effort publisher: the matched subscription must be best effort to get anything.
-    c = args_for('echo', topic='/vehicle/range', count=2, csv=True)
+    c = args_for('echo', topic=ns + '/vehicle/range', count=2, csv=True)
     assert topic.cmd_echo(c) == 0, c.err.getvalue()
     rows = c.out.getvalue().strip().splitlines()
     assert rows[0].split(',')[:3] == ['header.stamp.sec', 'header.stamp.nanosec',
@@ -132,7 +136,7 @@ def test_topic_echo_hz_and_list_against_a_50hz_publisher(ros_context):
     rng_col = rows[0].split(',').index('range')
     assert float(rows[2].split(',')[rng_col]) == float(rows[1].split(',')[rng_col]) + 1.0
 
-    h = args_for('hz', topic='chatter', count=101)
+    h = args_for('hz', topic=ns.lstrip('/') + '/chatter', count=101)
     t0 = time.monotonic()
     assert topic.cmd_hz(h) == 0
     t1 = time.monotonic()
@@ -154,7 +158,7 @@ def test_topic_echo_hz_and_list_against_a_50hz_publisher(ros_context):
 
     lst = args_for('list', show_types=True, spin_time=1.5)
     assert topic.cmd_list(lst) == 0
-    assert '/vehicle/range [sensor_msgs/msg/Range]' in lst.out.getvalue().splitlines()
+    assert f'{ns}/vehicle/range [sensor_msgs/msg/Range]' in lst.out.getvalue().splitlines()
 
     missing = args_for('echo', topic='/no/such/topic', timeout=0.3)
     assert topic.cmd_echo(missing) == 1
