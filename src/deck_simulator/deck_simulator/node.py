@@ -488,7 +488,7 @@ class SimulationLoop:
         self.link: ImpairedLink | None = None
         wire = ImpairedLink.wire_faults(self.world)
         fs = self.world.faults
-        if fs is not None and (fs.has_link or wire):
+        if fs is not None and fs.has_link:     # the wire faults are link faults too
             # a scenario fault that cuts the command path (on the wire, or a node_kill of a
             # command-path node: the orchestrator kills the process) carries the autopilot's
             # failsafe settings: COM_OF_LOSS_T, MPC_LAND_SPEED, and 'return' → AUTO.RTL

@@ -206,10 +206,6 @@ class MavlinkBridgeNode(Node):
         rng.field_of_view = float(self.cfg['range_field_of_view_rad'])
         self._msg_range = rng
 
-    def _stamp(self, header, frame_id: str) -> None:
-        header.stamp = self.get_clock().now().to_msg()
-        header.frame_id = frame_id
-
     def _send(self, fn, *args, **kwargs) -> None:
         try:
             fn(*args, **kwargs)
