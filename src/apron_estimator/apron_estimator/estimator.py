@@ -161,13 +161,13 @@ class ApronEstimator:
         vf = self.vertical
         epoch = vf.surface_epoch
         vf.on_lidar(t_s, range_m, roll, pitch)
-        if att is not None and vf.t_last_range == t_s:
+        r = vf.last_range_m
+        if att is not None and r is not None and vf.t_last_range == t_s:
             # where the lidar hits, horizontally from the body origin (ENU): range · (−R e3)
             # — a tilted vehicle samples the surface up to h·tan(tilt) away from below it
             cr, sr = math.cos(roll), math.sin(roll)
             sp = math.sin(pitch)
             cy, sy = math.cos(att[2]), math.sin(att[2])
-            r = vf.last_range_m
             self._lidar_spot = (-r * (cy * sp * cr + sy * sr), -r * (sy * sp * cr - cy * sr))
         if vf.surface_epoch != epoch:
             # The camera offsets scale with the height (29)-(30): a re-base from h_before to

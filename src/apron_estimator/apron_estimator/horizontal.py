@@ -298,7 +298,7 @@ def _sample(t_over: float | None, surface: float | None, t_s: float, surface_m: 
     if t_over is None:
         return t_s, surface                 # a visit starts
     if t_over == _SAMPLED:
-        return t_over, min(surface, surface_m)
+        return t_over, surface_m if surface is None else min(surface, surface_m)
     if t_s - t_over < dwell_s:
         return t_over, surface
     return _SAMPLED, surface_m              # first settled frame of this visit
@@ -387,7 +387,8 @@ class HorizontalTracker:
         return self.accel.relative_control(t0, t1)
 
     def _check_lost(self, t_s: float) -> None:
-        if self.mode != 'idle' and t_s - self.t_last_accept > self.params.lost_timeout_s:
+        last = self.t_last_accept
+        if self.mode != 'idle' and last is not None and t_s - last > self.params.lost_timeout_s:
             if self.mode == 'tracking':
                 self.events['lost'] += 1
             self.mode = 'idle'
@@ -441,7 +442,7 @@ class HorizontalTracker:
             return False
         sigma = self.params.sigma_m(height_m)
         r = sigma * sigma
-        if self.mode == 'idle':
+        if self.mode == 'idle' or self.t_filter is None:   # (a track always has a filter time)
             self._start(t_s, good[0][0], good[0][1], r)
             self.visible = True
             return True
@@ -449,16 +450,18 @@ class HorizontalTracker:
         dpx, dvx, dpy, dvy = self._control(self.t_filter, t_s)
         kf.predict(t_s - self.t_filter, self.params.accel_psd_m2ps3, dpx, dvx, dpy, dvy)
         self.t_filter = t_s
-        best, best_nis = None, math.inf
+        best_i, best_nis = -1, math.inf
         rejected = [rv for rv in self.rivals if rv.rejected] if self.rivals else None
-        for c in good:
+        for i, c in enumerate(good):
             nis = kf.nis(c[0], c[1], r)
             if nis < best_nis and not (rejected and self._explained(c, nis, r, rejected)):
-                best, best_nis = c, nis
-        if best is None:
+                best_i, best_nis = i, nis
+        if best_i < 0:
             # every detection sits where a rejected rival is expected: none is the track's
+            # (or no finite NIS at all, with no rival rejected)
             self.rejected['gated'] += len(good)
-            self._seen_rejected(t_s, good, rejected)
+            if rejected:
+                self._seen_rejected(t_s, good, rejected)
             return False
         if best_nis > self.params.nis_gate:
             self.rejected['gated'] += len(good)
@@ -470,9 +473,10 @@ class HorizontalTracker:
                 return True
             return False
         self.rejected['gated'] += len(good) - 1
+        best = good[best_i]
         kf.update(best[0], best[1], r)
         if self.mode == 'tracking' and (len(good) > 1 or self.rivals):
-            self._rivals(t_s, good, best, surface_m, spot_m)
+            self._rivals(t_s, good, best_i, surface_m, spot_m)
         self.last_nis = best_nis
         self.t_last_accept = t_s
         self.visible = True
@@ -512,19 +516,22 @@ class HorizontalTracker:
                     break
 
     def _rivals(self, t_s: float, good: list[tuple[float, float]],
-                best: tuple[float, float], surface_m: float | None,
+                best_i: int, surface_m: float | None,
                 spot_m: tuple[float, float] = (0.0, 0.0)) -> None:
         """Associate the unexplained detections with rivals, sample the surface under the
         track and the rivals, resolve or probe; refresh the ambiguity spread.
 
         A rival's offset is measured from the track's own detection in the same frame (not
-        from the filter's estimate, whose corrections would shift every offset)."""
+        from the filter's estimate, whose corrections would shift every offset).
+        ``best_i`` indexes the track's own detection in ``good`` (an index, not an identity
+        test: compiled, a tuple of floats is a value and has no identity)."""
         p = self.params
         kf = self.kf
         gate2 = p.rival_gate_m * p.rival_gate_m
         rivals = self.rivals
-        for c in good:
-            if c is best:
+        best = good[best_i]
+        for i, c in enumerate(good):
+            if i == best_i:
                 continue
             dx, dy = c[0] - best[0], c[1] - best[1]
             near, d2min = None, gate2
@@ -634,7 +641,7 @@ class HorizontalTracker:
         While :attr:`ambiguous` the variances include the squared offsets of the unresolved
         rivals (the spread of the hypotheses).
         """
-        if self.t_filter is None or not math.isfinite(t_s):
+        if self.t_filter is None or self.t_last_accept is None or not math.isfinite(t_s):
             return 0.0, 0.0, 0.0, 0.0, _UNKNOWN_VAR_M2, _UNKNOWN_VAR_M2, False, math.inf
         since = max(0.0, t_s - self.t_last_accept)
         tracked = self.mode == 'tracking' and since <= self.params.lost_timeout_s

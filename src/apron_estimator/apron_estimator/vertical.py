@@ -28,6 +28,7 @@ A shorter run is a spike and is discarded (counted in ``rejected['outlier']``).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 import math
 
@@ -101,7 +102,7 @@ class VerticalFilter:
     def reset(self) -> None:
         self.x = [0.0] * 5
         self._p = [0.0] * 15
-        self.t: float | None = None          # filter time
+        self.t = -math.inf                   # filter time (-inf until initialised)
         self.initialised = False
         self.surface_epoch = 0
         self.last_rebase_m = 0.0
@@ -180,7 +181,7 @@ class VerticalFilter:
         u = self._p
         return [u[_SYM[i][k]] for i in range(5)]
 
-    def _scalar_update(self, c: list[float], s: float, nu: float) -> None:
+    def _scalar_update(self, c: Sequence[float], s: float, nu: float) -> None:
         """x ← x + c ν/S, P ← P − c cᵀ/S with c = P Hᵀ (symmetric by construction).
 
         Unrolled over the 15 stored entries (the order of _UPPER); each entry is
@@ -212,7 +213,7 @@ class VerticalFilter:
         if t_s <= self._t_src[src]:
             self.rejected['out_of_order'] += 1
             return False
-        if self.t is not None and t_s < self.t - self.params.late_tolerance_s:
+        if t_s < self.t - self.params.late_tolerance_s:
             self.rejected['out_of_order'] += 1
             return False
         self._t_src[src] = t_s

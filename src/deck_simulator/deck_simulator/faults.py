@@ -358,7 +358,8 @@ class _Active:
     __slots__ = ('bursts', 'index', 'name', 'off', 'on', 'point', 'rng', 'spec', 'step')
 
     def __init__(self, spec: FaultSpec, index: int, seed: int) -> None:
-        self.spec = spec
+        # typed Any: each list of FaultSet holds one spec type, read by the code for that type
+        self.spec: Any = spec
         self.index = index
         self.name = spec.type
         self.rng = random.Random(f'{seed}:fault:{index}:{spec.type}')
@@ -426,8 +427,7 @@ class FaultSet:
         self.has_link = bool(self.link_cut or self.link_loss or self.link_latency)
         link = self.link_cut + self.link_loss + self.link_latency
         # failsafe parameters (the emulated autopilot's): the first link fault's
-        self.link_spec: _LinkFault = (link[0].spec if link   # type: ignore[assignment]
-                                      else MavlinkLinkLoss())
+        self.link_spec: _LinkFault = link[0].spec if link else MavlinkLinkLoss()
         self.loss_timeout_s = self.link_spec.loss_timeout_s
         self.hold_s = self.link_spec.hold_s
 
@@ -448,7 +448,7 @@ class FaultSet:
         """Open height-triggered windows (called by the world each physics sub-step)."""
         for a in self.pending:
             s = a.spec
-            if t >= s.start_s and height_m < s.trigger_height_m:   # type: ignore[operator]
+            if t >= s.start_s and height_m < s.trigger_height_m:
                 a.on = t
                 a.off = t + s.duration_s
         self.pending = [a for a in self.pending if a.on == math.inf]
@@ -483,7 +483,7 @@ class FaultSet:
         for a in self.blobs:
             if not a.on <= t < a.off:
                 continue
-            s: FalseBlobs = a.spec   # type: ignore[assignment]
+            s: FalseBlobs = a.spec
             rng = a.rng
             if s.mode == 'persistent':
                 if rng.random() < s.rate_per_frame:
@@ -513,13 +513,13 @@ class FaultSet:
     def lidar(self, t: float, reading: float | None, min_range_m: float,
               max_range_m: float) -> float | None:
         for a in self.lidar_drop:
-            if a.on <= t < a.off and a.rng.random() < a.spec.probability:   # type: ignore
+            if a.on <= t < a.off and a.rng.random() < a.spec.probability:
                 return None
         if reading is None:
             return None
         for a in self.lidar_spikes:
             if a.on <= t < a.off:
-                s: LidarOutliers = a.spec   # type: ignore[assignment]
+                s: LidarOutliers = a.spec
                 if a.rng.random() < s.probability:
                     sign = (-1.0 if s.direction == 'short' else 1.0 if s.direction == 'long'
                             else (1.0 if a.rng.random() < 0.5 else -1.0))
@@ -556,12 +556,12 @@ class FaultSet:
             if a.on <= t < a.off:
                 return None
         for a in self.link_loss:
-            if a.on <= t < a.off and a.rng.random() < a.spec.probability:   # type: ignore
+            if a.on <= t < a.off and a.rng.random() < a.spec.probability:
                 return None
         delay = 0.0
         for a in self.link_latency:
             if a.on <= t < a.off:
-                delay = max(delay, a.spec.latency_s)   # type: ignore[attr-defined]
+                delay = max(delay, a.spec.latency_s)
         return delay
 
 

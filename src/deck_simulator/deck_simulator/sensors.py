@@ -195,9 +195,10 @@ def optical_from_body(mount_rpy_rad: tuple[float, float, float]) -> Mat3:
     vector is first taken into the misaligned camera-body axes (Mᵀ) then permuted.
     """
     m = rot_body_to_world(*mount_rpy_rad)
-    mt = tuple(tuple(m[j][i] for j in range(3)) for i in range(3))
-    return (tuple(-v for v in mt[1]), tuple(-v for v in mt[0]),  # type: ignore[return-value]
-            tuple(-v for v in mt[2]))
+    # the rows of Mᵀ are the columns of M: optical x = −(Mᵀ row 1), y = −(row 0), z = −(row 2)
+    return ((-m[0][1], -m[1][1], -m[2][1]),
+            (-m[0][0], -m[1][0], -m[2][0]),
+            (-m[0][2], -m[1][2], -m[2][2]))
 
 
 def _to_optical(c: Mat3, r: Mat3, d0: float, d1: float, d2: float) -> tuple[

@@ -34,23 +34,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
-try:  # the controller-side formula, written by the dob_altitude package
-    from dob_altitude.ground_effect import ground_effect_gain as _shared_gain
-except ImportError:  # pragma: no cover - depends on the other package's progress
-    _shared_gain = None
-
-
-def _local_ground_effect_gain(rho: float, prop_radius_m: float, rotor_height_m: float,
-                              min_height_m: float, max_gain: float) -> float:
-    """(4) γ = 1 / (1 − ρ r² / (4 z_p)²), z_p clamped below at min_height_m, γ at max_gain."""
-    z = rotor_height_m if rotor_height_m > min_height_m else min_height_m
-    q = rho * prop_radius_m * prop_radius_m / (16.0 * z * z)
-    if q >= 1.0 - 1.0 / max_gain:
-        return max_gain
-    return 1.0 / (1.0 - q)
-
-
-ground_effect_gain = _shared_gain if _shared_gain is not None else _local_ground_effect_gain
+# (4) is one formula, shared with the controller side (the simulator's own ρ, r and clamps
+# are passed in; only the expression is common)
+from dob_altitude.ground_effect import ground_effect_gain
 
 
 def _positive(name: str, value: float) -> None:

@@ -30,7 +30,7 @@ import random
 from deckland_common.frames import rot_body_to_world, world_to_body_xy
 
 from deck_simulator.deck import Deck, make_heave
-from deck_simulator.faults import FaultSet
+from deck_simulator.faults import FaultSet, _LinkFault
 from deck_simulator.scenario import Scenario
 from deck_simulator.sensors import (
     Block,
@@ -281,7 +281,7 @@ class World:
             return 0.0
         # a killed controller/planner/estimator does not stop the bridge answering TIMESYNC
         cuts = [a for a in fs.link_cut
-                if a.name == 'mavlink_link_loss' or a.spec.node == 'mavlink_bridge']  # type: ignore
+                if a.name == 'mavlink_link_loss' or a.spec.node == 'mavlink_bridge']
         for a in cuts:
             if a.on <= t_s < a.off:
                 return None
@@ -289,12 +289,12 @@ class World:
             if a.on <= t_s < a.off:
                 if self._timesync_rng is None:
                     self._timesync_rng = random.Random(f'{self.seed}:timesync')
-                if self._timesync_rng.random() < a.spec.probability:   # type: ignore
+                if self._timesync_rng.random() < a.spec.probability:
                     return None
         arrive = t_s
         for a in fs.link_latency:
-            if a.on <= t_s < a.off and t_s + a.spec.latency_s > arrive:   # type: ignore
-                arrive = t_s + a.spec.latency_s   # type: ignore[attr-defined]
+            if a.on <= t_s < a.off and t_s + a.spec.latency_s > arrive:
+                arrive = t_s + a.spec.latency_s
         if self._queue and self._queue[-1][0] > arrive:
             arrive = self._queue[-1][0]
         for a in cuts:   # the reply leaves at `arrive`
@@ -304,8 +304,9 @@ class World:
 
     def _deliver(self, t_s: float, cmd: tuple[float, float, float, float]) -> None:
         self._last_rx_t = t_s
+        fs = self.faults
         if self.failsafe is not None:
-            if not self.faults.link_spec.reengage_offboard:   # type: ignore[union-attr]
+            if fs is not None and not fs.link_spec.reengage_offboard:
                 return   # PX4 stays in its failsafe mode until someone switches it back
             self.failsafe = None
         self.set_command(*cmd)
@@ -317,7 +318,9 @@ class World:
             due, cmd = q.popleft()
             self._deliver(due, cmd)
         fs = self.faults
-        spec = fs.link_spec   # type: ignore[union-attr]
+        if fs is None:
+            return
+        spec = fs.link_spec
         if self.failsafe is None:
             if t - self._last_rx_t <= spec.loss_timeout_s:
                 return
@@ -340,9 +343,9 @@ class World:
                 self.failsafe = 'land'
         if t >= self._fs_next - 1e-12:
             self._fs_next = t + FAILSAFE_PERIOD_S
-            self._failsafe_command()
+            self._failsafe_command(spec)
 
-    def _failsafe_command(self) -> None:
+    def _failsafe_command(self, spec: _LinkFault) -> None:
         """PX4-like position hold / return / land on truth: PD on position → tilt, (3)
         inverted for thrust u_z = m (g + a_z) / (γ cφ cθ) with the true γ of (4).
 
@@ -354,7 +357,6 @@ class World:
         v = self.vehicle
         p = self.params
         g = p.gravity_mps2
-        spec = self.faults.link_spec   # type: ignore[union-attr]
         x0, y0, z0, yaw0 = self._fs_ref
         if not self._fs_braked:
             # PX4 Hold: brake first, then hold where the vehicle came to rest

@@ -24,6 +24,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import fields, replace
 import math
+from typing import TypeVar
 
 from apron_estimator.types import VerticalState
 
@@ -68,12 +69,18 @@ def make_controller(kind: str, profile: str = 'default',
             (the message names the field). Configuration errors, raised at start-up only.
     """
     if kind == 'dob':
-        cls, ctrl_cls = DobParams, DobAltitudeController
-    elif kind == 'pid':
-        cls, ctrl_cls = PidParams, PidAltitudeController
-    else:
-        raise ValueError(f'controller kind: must be one of {list(CONTROLLER_KINDS)}, '
-                         f'got {kind!r}')
+        return DobAltitudeController(_profile_params(DobParams, profile, overrides))
+    if kind == 'pid':
+        return PidAltitudeController(_profile_params(PidParams, profile, overrides))
+    raise ValueError(f'controller kind: must be one of {list(CONTROLLER_KINDS)}, '
+                     f'got {kind!r}')
+
+
+_P = TypeVar('_P', DobParams, PidParams)
+
+
+def _profile_params(cls: type[_P], profile: str, overrides: Mapping[str, float] | None) -> _P:
+    """``cls.profile(profile)`` with ``overrides`` replaced (unknown fields rejected)."""
     params = cls.profile(profile)
     if overrides:
         known = {f.name for f in fields(cls)}
@@ -82,7 +89,7 @@ def make_controller(kind: str, profile: str = 'default',
             raise ValueError(f'{cls.__name__}: unknown field(s) {unknown}; '
                              f'known: {sorted(known)}')
         params = replace(params, **{k: float(v) for k, v in overrides.items()})
-    return ctrl_cls(params)
+    return params
 
 
 def parse_vertical_frame(name: str) -> str | None:

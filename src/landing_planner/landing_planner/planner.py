@@ -455,7 +455,9 @@ class LandingPlanner:
             latch.hold_height_m = self._height
 
     def _start_path(self, goal: tuple[float, float]) -> None:
-        start = self._sp if self._sp is not None else (self._pos[0], self._pos[1])
+        start = self._sp
+        if start is None:   # (step() sets the setpoint before any entry action runs)
+            start = (self._pos[0], self._pos[1]) if self._pos is not None else goal
         self._path.start(start, (float(goal[0]), float(goal[1])), self._ff)
         self._path_active = True
 
@@ -470,10 +472,11 @@ class LandingPlanner:
         motors were cut and the vehicle dropped onto it (touchdown p95 0.46 m/s on `paper`).
         """
         p = self.params
+        h = self._height if self._height is not None else math.nan   # NaN: never resting
         datum = self._surface if self._vframe == VERTICAL_WORLD_RATE else 0.0
-        pressing = self._zref_ok and self._zref.z_m - datum <= self._height - p.landed_press_m
+        pressing = self._zref_ok and self._zref.z_m - datum <= h - p.landed_press_m
         cond = (veh_ok and vehicle.landed) or (
-            vert_ok and pressing and self._height - p.gear_height_m <= p.landed_height_tol_m
+            vert_ok and pressing and h - p.gear_height_m <= p.landed_height_tol_m
             and abs(closing) <= p.landed_speed_tol_mps)
         if not cond:
             self._l.t_landed_cond = None
@@ -497,8 +500,9 @@ class LandingPlanner:
                 self._on_entry(t_s)
                 return
             lx, ly = p.landing_area_m
-            arrived = (self._path.done
-                       and math.hypot(self._pos[0] - lx, self._pos[1] - ly) <= p.arrival_radius_m)
+            pos = self._pos
+            arrived = (self._path.done and pos is not None
+                       and math.hypot(pos[0] - lx, pos[1] - ly) <= p.arrival_radius_m)
             if not arrived:
                 latch.t_arrived = None
             elif latch.t_arrived is None:
@@ -519,7 +523,7 @@ class LandingPlanner:
             else:
                 latch.t_in_radius = None
         elif mode is Mode.DESCEND:
-            if vert_ok and self._height <= p.final_approach_height_m:
+            if vert_ok and self._height is not None and self._height <= p.final_approach_height_m:
                 self._enter(Mode.FINAL, t_s, f'vertically close (h = {self._height:.2f} m, '
                             'Step 9 → Step 10)')
                 self._on_entry(t_s)
@@ -590,7 +594,7 @@ class LandingPlanner:
         if mode is Mode.APPROACH:
             return p.approach_height_m, p.vertical_speed_mps
         if mode is Mode.ALIGN:
-            return latch.hold_height_m, p.vertical_speed_mps
+            return self._held_height(), p.vertical_speed_mps
         if mode is Mode.DESCEND:
             if not target_ok:
                 return self._stop_here()   # momentarily not seen: hold height, timer runs on
@@ -604,7 +608,7 @@ class LandingPlanner:
         if mode is Mode.SEARCH:
             return p.search_height_m, p.vertical_speed_mps
         if mode in (Mode.HOLD, Mode.TAKEOFF):
-            return latch.hold_height_m, p.vertical_speed_mps
+            return self._held_height(), p.vertical_speed_mps
         if mode is Mode.IDLE:
             if not self._zref_ok:
                 # no valid height yet: nothing to hold. Latching the uninitialised reference
@@ -639,8 +643,8 @@ class LandingPlanner:
         """
         p = self.params
         h = self._height
-        if (self._vframe != VERTICAL_RELATIVE or self.mode not in (Mode.FINAL, Mode.FALLBACK)
-                or h > p.final_approach_height_m):
+        if (h is None or self._vframe != VERTICAL_RELATIVE
+                or self.mode not in (Mode.FINAL, Mode.FALLBACK) or h > p.final_approach_height_m):
             self._leash_taken_m = 0.0
             return
         in_band = h - p.gear_height_m <= p.landed_height_tol_m
@@ -653,6 +657,12 @@ class LandingPlanner:
             if in_band:
                 self._leash_taken_m += low - self._zref.z_m
             self._zref.shift(low - self._zref.z_m)
+
+    def _held_height(self) -> float:
+        """The height latched on entry (ALIGN, HOLD, TAKEOFF); the braking stop point if none
+        is latched (entry actions wait for the first vehicle position)."""
+        h = self._l.hold_height_m
+        return h if h is not None else self._stop_here()[0]
 
     def _stop_here(self) -> tuple[float, float]:
         """Target 'stop where the braking reference comes to rest' (evaluated only if used)."""
@@ -670,7 +680,8 @@ class LandingPlanner:
                 ax, ay = apron.apron_position_m
                 fx, fy = apron.apron_velocity_mps
                 # slew toward the target: move with the deck, close the gap at align_speed
-                px, py = self._sp[0] + fx * dt_s, self._sp[1] + fy * dt_s
+                sx, sy = self._sp if self._sp is not None else (ax, ay)   # (set by step())
+                px, py = sx + fx * dt_s, sy + fy * dt_s
                 ex, ey = ax - px, ay - py
                 n = math.hypot(ex, ey)
                 lim = p.align_speed_mps * dt_s
