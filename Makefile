@@ -6,7 +6,7 @@ STAMP := $(VENV)/.deckland-installed
 PKGS := $(sort $(wildcard src/*/setup.py))
 SCENARIO ?= paper
 
-.PHONY: setup run test lint golden bench clean
+.PHONY: setup accel run test lint golden bench clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -20,11 +20,16 @@ $(STAMP): $(PY) requirements.txt $(PKGS) $(wildcard src/*/package.xml)
 
 setup: $(STAMP)
 
+# The compiled cores for batch runs (deckland.accel, mypyc): rebuilt only when a compiled
+# source changed. Campaigns run ~3x faster with them; they fall back to the sources without.
+accel: setup
+	@$(VENV)/bin/deckland accel status >/dev/null 2>&1 || $(VENV)/bin/deckland accel build
+
 run: setup
 	$(VENV)/bin/deckland up --scenario $(SCENARIO) --record runs/latest
 
-test: setup
-	$(PY) -m pytest test
+test: setup accel
+	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test
 
 lint: setup
 	$(VENV)/bin/ruff check .

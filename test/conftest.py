@@ -12,6 +12,9 @@ import threading
 os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
+# The tests patch and inspect the Python sources of the cores: never load the compiled build
+# in this process (test_accel.py runs it in subprocesses of its own).
+os.environ['DECKLAND_CORES'] = 'python'
 
 from hypothesis import settings
 import pytest

@@ -5,8 +5,14 @@ The campaign JSON is a stable interface (other tools read it)::
     {"scenario", "controller", "runs", "seed", "success_rate", "fallback_rate", "crash_rate",
      "horizontal_error_m": {"p50", "p95", "max"}, "touchdown_speed_mps": {"p50", "p95", "max"},
      "time_to_land_s": {"p50", "p95"}, "wall_time_s", "realtime_factor",
+     "workers", "realtime_factor_per_worker", "cores",
      "failures": [{"seed", "reason", "outcome"}],
      "outcomes": {"deck", "fallback", "hold", "crash", "unstable"}}
+
+``realtime_factor`` is simulated seconds per wall-clock second over the whole campaign (all
+workers); ``realtime_factor_per_worker`` divides it by the worker processes used. ``cores`` is
+``'compiled'`` when the mypyc build of the cores flew the runs (``deckland.accel``; identical
+results), ``'python'`` otherwise.
 
 ``outcomes`` counts the runs of each safety class (``deckland.runner.classify``,
 docs/failsafe.md); a failure's ``outcome`` is its class.
@@ -28,6 +34,8 @@ import sys
 import time
 from typing import Any
 
+from deckland import accel
+from deckland.accel import add_cores_argument
 from deckland.runner import CONTROLLERS, RunConfig, RunResult, run_landing
 
 SEED_STRIDE = 100_000
@@ -50,7 +58,7 @@ def _percentile(values: list[float], q: float) -> float:
 
 
 def summarize(results: list[RunResult], scenario: str, controller: str, seed: int,
-              wall_time_s: float) -> dict[str, Any]:
+              wall_time_s: float, workers: int = 1) -> dict[str, Any]:
     """Aggregate run outcomes into the campaign report (see module docstring)."""
     n = len(results)
     on_pad = [r for r in results if r.landed_on_deck]
@@ -82,6 +90,10 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
         'max_thrust_n': _json_float(max((r.max_thrust_n for r in results), default=math.nan)),
         'wall_time_s': round(wall_time_s, 3),
         'realtime_factor': round(sim_time / wall_time_s, 1) if wall_time_s > 0 else 0.0,
+        'workers': workers,
+        'realtime_factor_per_worker': (round(sim_time / wall_time_s / workers, 1)
+                                       if wall_time_s > 0 else 0.0),
+        'cores': accel.cores(),
         'failures': [{'seed': r.seed, 'reason': r.reason, 'outcome': r.outcome}
                      for r in results if not r.success],
         'outcomes': {k: sum(r.outcome == k for r in results)
@@ -125,7 +137,8 @@ def run_campaign(scenario: str, runs: int, seed: int, config: RunConfig, workers
                 _progress(label, len(results), runs, start)
     else:
         ctx = mp.get_context('fork' if sys.platform.startswith('linux') else 'spawn')
-        with ctx.Pool(workers) as pool:
+        with ctx.Pool(workers, initializer=accel.worker_init,
+                      initargs=(accel.status().get('dir'),)) as pool:
             for res in pool.imap_unordered(_worker, jobs, chunksize=max(1, runs // (workers * 8))):
                 results.append(res)
                 if progress:
@@ -134,7 +147,8 @@ def run_campaign(scenario: str, runs: int, seed: int, config: RunConfig, workers
     if progress:
         sys.stderr.write('\n')
     results.sort(key=lambda r: r.seed)
-    return summarize(results, scen.name, config.controller, seed, wall), results
+    used = 1 if (workers == 1 or runs == 1) else min(workers, runs)
+    return summarize(results, scen.name, config.controller, seed, wall, used), results
 
 
 def _progress(label: str, done: int, total: int, start: float) -> None:
@@ -268,6 +282,7 @@ def register(sub) -> None:
     p.add_argument('--out', help='write the JSON report here')
     p.add_argument('--plots', help='write PNG distributions into this directory')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
+    add_cores_argument(p)
     p.set_defaults(func=_cmd_campaign)
 
     s = sub.add_parser('sim', help='fly one seeded simulated landing in-process')
@@ -276,4 +291,5 @@ def register(sub) -> None:
     s.add_argument('--controller', choices=CONTROLLERS, default='dob')
     s.add_argument('--profile', default='default')
     s.add_argument('--csv', help='write the time series of the run to this CSV')
+    add_cores_argument(s)
     s.set_defaults(func=_cmd_sim)

@@ -19,7 +19,11 @@ TOOL_MODULES = (
     'deckland.plot',
     'deckland.bench',
     'deckland.tune',
+    'deckland.accel',
 )
+
+#: Subcommands that fly the in-process simulator: ``--cores`` picks Python or compiled cores.
+BATCH_COMMANDS = ('campaign', 'sim', 'tune')
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,8 +38,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    # before build_parser: the tool modules import the cores, and a core module can only be
+    # loaded compiled if nothing imported it yet (deckland.accel)
+    from deckland.accel import select_from_argv
+    select_from_argv(argv, BATCH_COMMANDS)
     parser = build_parser()
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -15,6 +15,8 @@ import sys
 import time
 from typing import Any
 
+from deckland import accel
+
 
 def measure_realtime_factor(scenario: str = 'paper', runs: int = 20, seed: int = 1,
                             controller: str = 'dob') -> dict[str, Any]:
@@ -22,7 +24,7 @@ def measure_realtime_factor(scenario: str = 'paper', runs: int = 20, seed: int =
 
     Returns ``{'scenario', 'controller', 'runs', 'seed', 'sim_time_s', 'wall_time_s',
     'cpu_time_s', 'realtime_factor', 'realtime_factor_cpu', 'us_per_physics_step',
-    'success_rate'}``; ``realtime_factor`` is simulated seconds per wall-clock second (one
+    'success_rate', 'cores'}``; ``realtime_factor`` is simulated seconds per wall-clock second (one
     worker), ``realtime_factor_cpu`` the same per second of this process's CPU time (less
     sensitive to other jobs on a shared machine), ``us_per_physics_step`` the mean wall time of
     one physics step including the 100 Hz / 50 Hz blocks amortised over it.
@@ -59,6 +61,7 @@ def measure_realtime_factor(scenario: str = 'paper', runs: int = 20, seed: int =
         'realtime_factor_cpu': round(sim_time / cpu, 1) if cpu > 0 else 0.0,
         'us_per_physics_step': round(1e6 * wall / steps, 2) if steps > 0 else 0.0,
         'success_rate': successes / runs,
+        'cores': accel.cores(),
     }
 
 
@@ -71,7 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--controller', default='dob')
     parser.add_argument('--profile', action='store_true',
                         help='also print the top 25 functions by own time (cProfile) to stderr')
+    accel.add_cores_argument(parser)
     args = parser.parse_args(argv)
+    try:
+        accel.enable(args.cores)
+    except accel.AccelError as exc:
+        parser.error(f'--cores compiled: {exc}')
     if args.profile:
         import cProfile
         import pstats

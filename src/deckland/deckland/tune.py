@@ -18,6 +18,7 @@ import json
 import pathlib
 from typing import Any
 
+from deckland.accel import add_cores_argument
 from deckland.campaign import run_campaign
 from deckland.runner import RunConfig
 
@@ -90,4 +91,5 @@ def register(sub) -> None:
     p.add_argument('--profile', default='default')
     p.add_argument('--workers', type=int, default=0)
     p.add_argument('--out', help='write the whole sweep as JSON')
+    add_cores_argument(p)
     p.set_defaults(func=_cmd_tune)
