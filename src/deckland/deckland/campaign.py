@@ -35,7 +35,6 @@ import time
 from typing import Any
 
 from deckland import accel
-from deckland.accel import add_cores_argument
 from deckland.runner import CONTROLLERS, RunConfig, RunResult, run_landing
 
 SEED_STRIDE = 100_000
@@ -282,7 +281,7 @@ def register(sub) -> None:
     p.add_argument('--out', help='write the JSON report here')
     p.add_argument('--plots', help='write PNG distributions into this directory')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
-    add_cores_argument(p)
+    accel.add_cores_argument(p)
     p.set_defaults(func=_cmd_campaign)
 
     s = sub.add_parser('sim', help='fly one seeded simulated landing in-process')
@@ -291,5 +290,5 @@ def register(sub) -> None:
     s.add_argument('--controller', choices=CONTROLLERS, default='dob')
     s.add_argument('--profile', default='default')
     s.add_argument('--csv', help='write the time series of the run to this CSV')
-    add_cores_argument(s)
+    accel.add_cores_argument(s)
     s.set_defaults(func=_cmd_sim)
