@@ -3,10 +3,9 @@
 import math
 import random
 
+from deckland_common.stats import percentile, wilson_interval
 import numpy as np
 import pytest
-
-from deckland_common.stats import percentile, wilson_interval
 
 
 def test_percentile_equals_numpy_linear_method():
