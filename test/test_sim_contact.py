@@ -7,7 +7,6 @@ friction angle, the static stability angle, energy and a heaving / rolling deck.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import random
 
@@ -71,17 +70,26 @@ class Rig:
         self.body = b
         return b
 
-    def run(self, seconds, deck_motion=None, monitor=None, armed=False, every=None):
-        n = self.contact.substeps(DT)
-        h = DT / n
+    def run(self, seconds, deck_motion=None, monitor=None, armed=False, every=None,
+            wrench=None):
+        """``wrench(rig)`` → external (force world, torque body), held over each tick as the
+        motors' output will be; ``armed`` a bool or ``armed(rig)``."""
+        ext = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         for _ in range(round(seconds / DT)):
+            n = self.contact.substeps(DT)
+            h = DT / n
+            if wrench is not None:
+                ext = wrench(self)
             for _ in range(n):
                 self.t += h
                 if deck_motion is not None:
                     deck_motion(self.t)
-                step_with_contact(self.body, self.contact, h, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-                if monitor is not None:
-                    monitor.update(self.t, self.body, armed)
+                if monitor is None:
+                    step_with_contact(self.body, self.contact, h, *ext)
+                else:   # the monitor sees the contact states before they act (the wiring)
+                    w = self.contact.wrench(self.body)
+                    monitor.update(self.t, self.body, armed(self) if callable(armed) else armed)
+                    self.body.step(h, *(a + b for a, b in zip(w, ext, strict=True)))
                 if every is not None:
                     every(self)
 
@@ -223,17 +231,14 @@ def test_flat_drop_rebounds_at_restitution_without_gravity(e, v0, k, finer):
     assert abs(rig.body.vx) < 1e-12 and abs(rig.body.p) < 1e-9
 
 
-def test_dropped_vehicle_bounces_to_the_height_of_its_restitution_with_gravity():
-    # closed form of the contact phase with gravity: δ̈ + 2σδ̇ + ω²δ = g, δ(0) = 0,
-    # δ̇(0) = v0; lift-off when ω²δ + 2σδ̇ = 0; apex = v_out²/2g − δ(t*) above the surface
-    cp = ContactParams()
-    bp = RigidBodyParams()
-    h0 = 0.10
-    v0 = math.sqrt(2 * G * h0)
+def bounce_apex_m(cp, bp, v0):
+    """Closed form of a flat drop's contact phase with gravity: δ̈ + 2σδ̇ + ω²δ = g,
+    δ(0) = 0, δ̇(0) = v0; lift-off when ω²δ + 2σδ̇ = 0; apex = v_out²/2g − δ(t*) above the
+    surface."""
     wn = math.sqrt(cp.stiffness_n_per_m / bp.mass_kg)
     zeta = damping_ratio_for(cp.restitution)
     sig, wd = zeta * wn, wn * math.sqrt(1 - zeta * zeta)
-    ds = G / (wn * wn)
+    ds = bp.gravity_mps2 / (wn * wn)
     b_, c_ = -ds, (v0 - sig * ds) / wd
 
     def delta(t):
@@ -254,8 +259,14 @@ def test_dropped_vehicle_bounces_to_the_height_of_its_restitution_with_gravity()
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if force(mid) > 0 else (lo, mid)
-    apex = ddelta(hi) ** 2 / (2 * G) - delta(hi)
+    return ddelta(hi) ** 2 / (2 * bp.gravity_mps2) - delta(hi)
 
+
+def test_dropped_vehicle_bounces_to_the_height_of_its_restitution_with_gravity():
+    cp = ContactParams()
+    bp = RigidBodyParams()
+    h0 = 0.10
+    apex = bounce_apex_m(cp, bp, math.sqrt(2 * G * h0))
     rig = Rig(params=ContactParams(max_omega_h=cp.max_omega_h / 8))   # e error < 0.5 %
     rig.place(gap_m=h0)
     best = [0.0, False]
@@ -279,6 +290,15 @@ def test_contact_substep_is_set_by_the_stiffness():
     assert rig.contact.omega_max * DT / n <= rig.cp.max_omega_h
     stiff = Rig(params=ContactParams(stiffness_n_per_m=1.6e5))
     assert stiff.contact.substeps(DT) == 2 * n         # ω ∝ √k
+    # resting (every touching point slower than 2 cm/s): half as many; an impact: all again
+    rig.place(velocity=(0.0, 0.0, -0.5), gap_m=0.0005)
+    rig.run(0.01)
+    assert rig.contact.n_active == 4 and rig.contact.substeps(DT) == n
+    rig.run(1.0)
+    assert rig.contact.max_speed_mps < 0.02 and rig.contact.substeps(DT) == n // 2
+    rig.body.vz = -0.3
+    rig.run(DT)
+    assert rig.contact.substeps(DT) == n
 
 
 # --- friction ------------------------------------------------------------------------------------
@@ -485,11 +505,14 @@ def test_contact_is_deterministic():
 
 def test_surface_pose_is_orthonormalised_and_rejects_bad_input():
     s = Surface('deck', 1.0, 1.0, 1.0, 0.5)
-    s.set_pose((0, 0, 0), (0.0, 0.0, 2.0), (1.0, 0.0, 0.5))
+    assert s.set_pose((0, 0, 0), (0.0, 0.0, 2.0), (1.0, 0.0, 0.5))
     assert (s.nx, s.ny, s.nz) == (0.0, 0.0, 1.0)
     assert (s.ux, s.uy, s.uz) == (1.0, 0.0, 0.0) and (s.wx, s.wy, s.wz) == (0.0, 1.0, 0.0)
-    with pytest.raises(ValueError, match='axis_u'):
-        s.set_pose((0, 0, 0), (0.0, 0.0, 1.0), (0.0, 0.0, 1.0))
-    with pytest.raises(ValueError, match='normal'):
-        s.set_pose((0, 0, 0), (0.0, 0.0, math.nan), (1.0, 0.0, 0.0))
-    assert dataclasses.is_dataclass(ContactParams)
+    # rejected and counted, the last good pose kept
+    assert not s.set_pose((0, 0, 1), (0.0, 0.0, 1.0), (0.0, 0.0, 1.0))        # u along n
+    assert not s.set_pose((0, 0, 1), (0.0, 0.0, math.nan), (1.0, 0.0, 0.0))
+    assert not s.set_pose((0, 0, 1), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (math.inf, 0, 0))
+    assert not s.set_pose((0, 0, 1), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0))
+    assert s.rejected == 4 and s.cz == 0.0 and s.vx == 0.0
+    with pytest.raises(ValueError, match='surface deck'):
+        Surface('deck', 0.0, 1.0, 1.0, 0.5)

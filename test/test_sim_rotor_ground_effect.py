@@ -113,3 +113,20 @@ def test_params_rejected_by_name():
         RotorGroundEffectParams(body_coeff=-1.0)
     with pytest.raises(ValueError, match='max_gain'):
         RotorGroundEffectParams(max_gain=0.5)
+
+
+def test_far_from_every_surface_the_gains_are_held_between_updates():
+    ge = model(far_update_every=8, full_rate_below_m=0.6)
+    ground = [ground_surface(0.6)]
+    ge.update(body_at(1.0), ground)                 # all rotors 1.05 m up: held 7 calls
+    far = ge.gain[0]
+    assert far == pytest.approx(multirotor_gain_level(1.05, R, math.sqrt(2) * L, L, 2.0))
+    for _ in range(7):
+        ge.update(body_at(0.3), ground)
+        assert ge.gain[0] == far
+    ge.update(body_at(0.3), ground)                 # the 8th call: near, full rate again
+    near = multirotor_gain_level(0.35, R, math.sqrt(2) * L, L, 2.0)
+    assert ge.gain[0] == pytest.approx(near, rel=1e-12)
+    ge.update(body_at(0.2), ground)
+    assert ge.gain[0] == pytest.approx(multirotor_gain_level(0.25, R, math.sqrt(2) * L, L,
+                                                             2.0), rel=1e-12)

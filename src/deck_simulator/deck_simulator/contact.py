@@ -16,7 +16,14 @@ from dataclasses import dataclass
 import math
 
 from deckland_common.frames import Vec3
-from deckland_common.validate import in_range, integer_at_least, one_of, positive, require
+from deckland_common.validate import (
+    in_range,
+    integer_at_least,
+    non_negative,
+    one_of,
+    positive,
+    require,
+)
 
 from deck_simulator.rigid_body import RigidBody
 
@@ -104,6 +111,9 @@ class ContactParams:
     friction_deck: float = 0.6          # Coulomb μ, gear on the deck / pad
     friction_ground: float = 0.6        # Coulomb μ, gear on the ground
     max_omega_h: float = 0.4            # sub-step: ω_max h at most this (measured, see doc)
+    resting_omega_h: float = 0.8        # ... and this while resting (stable, no impact)
+    resting_speed_mps: float = 0.02     # resting: every touching point slower than this ...
+    resting_time_s: float = 0.1         # ... for this long (an impact lasts ~ 25 ms)
     near_margin_m: float = 0.05         # sub-step when a surface is this close (plus v·dt)
 
     def __post_init__(self) -> None:
@@ -113,6 +123,9 @@ class ContactParams:
         in_range('friction_deck', self.friction_deck, 0.0, 3.0)
         in_range('friction_ground', self.friction_ground, 0.0, 3.0)
         in_range('max_omega_h', self.max_omega_h, 0.01, 1.5)
+        in_range('resting_omega_h', self.resting_omega_h, self.max_omega_h, 1.5)
+        non_negative('resting_speed_mps', self.resting_speed_mps)
+        non_negative('resting_time_s', self.resting_time_s)
         positive('near_margin_m', self.near_margin_m)
 
 
@@ -122,7 +135,8 @@ class Surface:
     depth make a half-space (the ground)."""
 
     __slots__ = ('cx', 'cy', 'cz', 'depth', 'half_u', 'half_w', 'kind', 'mu', 'nx', 'ny', 'nz',
-                 'ox', 'oy', 'oz', 'ux', 'uy', 'uz', 'vx', 'vy', 'vz', 'wx', 'wy', 'wz')
+                 'ox', 'oy', 'oz', 'rejected', 'ux', 'uy', 'uz', 'vx', 'vy', 'vz', 'wx', 'wy',
+                 'wz')
 
     def __init__(self, kind: str, half_u_m: float, half_w_m: float, depth_m: float,
                  mu: float) -> None:
@@ -132,6 +146,7 @@ class Surface:
         self.kind = kind
         self.half_u, self.half_w, self.depth = float(half_u_m), float(half_w_m), float(depth_m)
         self.mu = float(mu)
+        self.rejected = 0
         self.cx = self.cy = self.cz = 0.0
         self.nx = self.ny = 0.0
         self.nz = 1.0
@@ -142,25 +157,37 @@ class Surface:
 
     def set_pose(self, centre_m: Vec3, normal: Vec3, axis_u: Vec3,
                  velocity_mps: Vec3 = (0.0, 0.0, 0.0),
-                 angular_velocity_radps: Vec3 = (0.0, 0.0, 0.0)) -> None:
-        """Pose and velocity; ``axis_u`` is made orthogonal to the (normalised) normal."""
+                 angular_velocity_radps: Vec3 = (0.0, 0.0, 0.0)) -> bool:
+        """Pose and velocity; ``axis_u`` is made orthogonal to the (normalised) normal.
+
+        A non-finite value, a zero normal or an axis along the normal is rejected (False,
+        counted in ``rejected``; the previous pose is kept).
+        """
         nx, ny, nz = normal
-        n = math.sqrt(nx * nx + ny * ny + nz * nz)
-        require(n > 0.5 and math.isfinite(n), 'surface normal', 'must be a unit vector', normal)
-        nx, ny, nz = nx / n, ny / n, nz / n
         ux, uy, uz = axis_u
+        cx, cy, cz = centre_m
+        vx, vy, vz = velocity_mps
+        ox, oy, oz = angular_velocity_radps
+        n = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if not (n > 1e-9 and math.isfinite(n + ux + uy + uz + cx + cy + cz + vx + vy + vz + ox
+                                            + oy + oz)):
+            self.rejected += 1
+            return False
+        nx, ny, nz = nx / n, ny / n, nz / n
         d = ux * nx + uy * ny + uz * nz
         ux, uy, uz = ux - d * nx, uy - d * ny, uz - d * nz
         u = math.sqrt(ux * ux + uy * uy + uz * uz)
-        require(u > 1e-6 and math.isfinite(u), 'surface axis_u', 'must not be along the normal',
-                axis_u)
+        if not u > 1e-6:
+            self.rejected += 1
+            return False
         ux, uy, uz = ux / u, uy / u, uz / u
-        self.cx, self.cy, self.cz = centre_m
+        self.cx, self.cy, self.cz = cx, cy, cz
         self.nx, self.ny, self.nz = nx, ny, nz
         self.ux, self.uy, self.uz = ux, uy, uz
         self.wx, self.wy, self.wz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
-        self.vx, self.vy, self.vz = velocity_mps
-        self.ox, self.oy, self.oz = angular_velocity_radps
+        self.vx, self.vy, self.vz = vx, vy, vz
+        self.ox, self.oy, self.oz = ox, oy, oz
+        return True
 
     def velocity_at(self, x: float, y: float, z: float) -> Vec3:
         """Velocity of the surface-fixed point now at (x, y, z): v + ω × (p − c)."""
@@ -191,9 +218,10 @@ class ContactModel:
     ``hull_contact`` (any hull point on any face), ``max_penetration_m``.
     """
 
-    __slots__ = ('_anc', '_kind', 'c_n', 'c_t', 'hull_contact', 'k_n', 'k_t',
-                 'max_penetration_m', 'n_gear', 'n_gear_contacts', 'n_points', 'near_margin',
-                 'omega_max', 'params', 'points_body', 'r_max', 'side_contact', 'surfaces')
+    __slots__ = ('_anc', '_calm_s', '_kind', 'c_n', 'c_t', 'hull_contact', 'k_n', 'k_t',
+                 'max_penetration_m', 'max_speed_mps', 'n_active', 'n_gear', 'n_gear_contacts',
+                 'n_points', 'near_margin', 'new_contact', 'omega_max', 'params', 'points_body',
+                 'r_max', 'side_contact', 'surfaces')
 
     def __init__(self, params: ContactParams, mass_kg: float,
                  inertia_kgm2: tuple[float, float, float], gear_points: tuple[Vec3, ...],
@@ -229,10 +257,24 @@ class ContactModel:
         self.side_contact = False
         self.hull_contact = False
         self.max_penetration_m = 0.0
+        self.max_speed_mps = 0.0      # fastest touching point relative to its surface
+        self.n_active = 0             # touching (point, surface) pairs
+        self.new_contact = False      # a pair began touching in the last call
+        self._calm_s = 0.0
 
     def substeps(self, dt_s: float) -> int:
-        """Sub-steps of a dt_s tick while in contact: ω_max h <= ``max_omega_h``."""
-        return max(1, math.ceil(dt_s * self.omega_max / self.params.max_omega_h - 1e-9))
+        """Sub-steps of the next dt_s tick near or in contact (called once per tick):
+        ω_max h <= ``max_omega_h``; while resting (every touching point slower than
+        ``resting_speed_mps`` relative to its surface, no new contact, for
+        ``resting_time_s``) ω_max h <= ``resting_omega_h``."""
+        p = self.params
+        if (self.n_active > 0 and not self.new_contact
+                and self.max_speed_mps < p.resting_speed_mps):
+            self._calm_s += dt_s
+        else:
+            self._calm_s = 0.0
+        lim = p.resting_omega_h if self._calm_s > p.resting_time_s else p.max_omega_h
+        return max(1, math.ceil(dt_s * self.omega_max / lim - 1e-9))
 
     def near(self, body: RigidBody, dt_s: float) -> bool:
         """True if a point may touch a surface within dt_s (or touches one now)."""
@@ -266,8 +308,10 @@ class ContactModel:
         kind = self._kind
         anc = self._anc
         counts = self.n_gear_contacts
-        side = hull = False
+        side = hull = new = False
         max_pen = 0.0
+        max_v2 = 0.0
+        n_active = 0
         r00, r01, r02 = body.r00, body.r01, body.r02
         r10, r11, r12 = body.r10, body.r11, body.r12
         r20, r21, r22 = body.r20, body.r21, body.r22
@@ -287,6 +331,7 @@ class ContactModel:
             ux, uy, uz = s.ux, s.uy, s.uz
             wx, wy, wz = s.wx, s.wy, s.wz
             hu, hw, depth, mu = s.half_u, s.half_w, s.depth, s.mu
+            svx, svy, svz, sox, soy, soz = s.vx, s.vy, s.vz, s.ox, s.oy, s.oz
             for i in range(n_pts):
                 pair = base + i
                 px, py, pz = pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]
@@ -323,8 +368,10 @@ class ContactModel:
                 vpx = body.vx + wby * rz - wbz * ry
                 vpy = body.vy + wbz * rx - wbx * rz
                 vpz = body.vz + wbx * ry - wby * rx
-                vsx, vsy, vsz = s.velocity_at(qx, qy, qz)
-                vrx, vry, vrz = vpx - vsx, vpy - vsy, vpz - vsz
+                # surface velocity at the point: v + ω × (q − c)
+                vrx = vpx - (svx + soy * dz - soz * dy)
+                vry = vpy - (svy + soz * dx - sox * dz)
+                vrz = vpz - (svz + sox * dy - soy * dx)
                 vn = vrx * cnx + vry * cny + vrz * cnz
                 fn = kn * pen - cn * vn
                 if fn < 0.0:
@@ -332,7 +379,12 @@ class ContactModel:
                 # the point projected onto the face it touches
                 cx_, cy_, cz_ = qx + pen * cnx, qy + pen * cny, qz + pen * cnz
                 ai = 3 * pair
+                n_active += 1
+                v2 = vrx * vrx + vry * vry + vrz * vrz
+                if v2 > max_v2:
+                    max_v2 = v2
                 if kind[pair] != k_new:   # new contact (or another face): anchor here
+                    new = True
                     ex, ey, ez = cx_ - scx, cy_ - scy, cz_ - scz
                     anc[ai] = ex * ux + ey * uy + ez * uz
                     anc[ai + 1] = ex * wx + ey * wy + ez * wz
@@ -385,6 +437,9 @@ class ContactModel:
         self.side_contact = side
         self.hull_contact = hull
         self.max_penetration_m = max_pen
+        self.max_speed_mps = math.sqrt(max_v2)
+        self.n_active = n_active
+        self.new_contact = new
         # torque into the body frame: Rᵀ τ
         return (fx, fy, fz, r00 * tx + r10 * ty + r20 * tz, r01 * tx + r11 * ty + r21 * tz,
                 r02 * tx + r12 * ty + r22 * tz)

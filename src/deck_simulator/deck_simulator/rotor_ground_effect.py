@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import math
 
 from deckland_common.frames import Vec3
-from deckland_common.validate import in_range, non_negative, positive, require
+from deckland_common.validate import in_range, integer_at_least, non_negative, positive, require
 
 from deck_simulator.contact import Surface
 from deck_simulator.rigid_body import RigidBody
@@ -31,12 +31,18 @@ class RotorGroundEffectParams:
     body_coeff: float = 2.0          # K_b
     min_height_m: float = 0.05
     max_gain: float = 1.5
+    # above this (every rotor), update only every `far_update_every` calls: γ changes by
+    # < 1e-3 in that time at closing speeds up to 1 m/s (docs/world/contact.md)
+    full_rate_below_m: float = 0.8
+    far_update_every: int = 8
 
     def __post_init__(self) -> None:
         positive('prop_radius_m', self.prop_radius_m)
         non_negative('body_coeff', self.body_coeff)
         positive('min_height_m', self.min_height_m)
         in_range('max_gain', self.max_gain, 1.0, 10.0)
+        positive('full_rate_below_m', self.full_rate_below_m)
+        integer_at_least('far_update_every', self.far_update_every, 1)
 
 
 def multirotor_gain_level(z_m: float, prop_radius_m: float, rotor_spacing_m: float,
@@ -53,8 +59,8 @@ def multirotor_gain_level(z_m: float, prop_radius_m: float, rotor_spacing_m: flo
 class RotorGroundEffect:
     """Per-rotor thrust gains γ_i; :meth:`update` from the body pose and the surfaces."""
 
-    __slots__ = ('_bd2', '_d2', '_rot', 'body_coeff', 'centre', 'gain', 'height_m', 'max_gain',
-                 'min_h', 'n', 'q_max', 'r2', 'surface_index')
+    __slots__ = ('_bd2', '_d2', '_every', '_full_below', '_rot', '_skip', 'body_coeff', 'centre',
+                 'gain', 'height_m', 'max_gain', 'min_h', 'n', 'q_max', 'r2', 'surface_index')
 
     def __init__(self, params: RotorGroundEffectParams, rotors_body_m: tuple[Vec3, ...],
                  centre_body_m: Vec3 = (0.0, 0.0, 0.0)) -> None:
@@ -82,9 +88,17 @@ class RotorGroundEffect:
         self.gain = [1.0] * self.n
         self.height_m = [math.inf] * self.n
         self.surface_index = [-1] * self.n
+        self._full_below = params.full_rate_below_m
+        self._every = params.far_update_every
+        self._skip = 0
 
     def update(self, body: RigidBody, surfaces: list[Surface]) -> None:
-        """γ_i of every rotor now (``gain``), with its height and surface (−1: none below)."""
+        """γ_i of every rotor now (``gain``), with its height and surface (−1: none below);
+        called once per physics tick. Far from every surface, every ``far_update_every``-th
+        call only (the gains are held in between)."""
+        if self._skip > 0:
+            self._skip -= 1
+            return
         n = self.n
         rot = self._rot
         hts = self.height_m
@@ -100,6 +114,12 @@ class RotorGroundEffect:
                     best, best_h = si, h
             idx[i] = best
             hts[i] = best_h if best_h > self.min_h else self.min_h
+        low = math.inf
+        for i in range(n):
+            if hts[i] < low:
+                low = hts[i]
+        if low > self._full_below:
+            self._skip = self._every - 1
         cx, cy, cz = self.centre
         qx, qy, qz = body.point_world(cx, cy, cz)
         r2q = 0.25 * self.r2
@@ -115,10 +135,12 @@ class RotorGroundEffect:
                 if idx[j] != si:
                     continue
                 z = zi + hts[j]
-                s_sum += r2q * z / (self._d2[i * n + j] + z * z) ** 1.5
+                q = self._d2[i * n + j] + z * z
+                s_sum += r2q * z / (q * math.sqrt(q))
             if kb > 0.0:
                 a, b, hc = surfaces[si].local(qx, qy, qz)
                 if hc > 0.0 and abs(a) <= surfaces[si].half_u and abs(b) <= surfaces[si].half_w:
                     z = zi + (hc if hc > self.min_h else self.min_h)
-                    s_sum += kb * z / (self._bd2[i] + z * z) ** 1.5
+                    q = self._bd2[i] + z * z
+                    s_sum += kb * z / (q * math.sqrt(q))
             self.gain[i] = self.max_gain if s_sum >= self.q_max else 1.0 / (1.0 - s_sum)
