@@ -20,6 +20,7 @@ from deck_simulator.sensor_imu import (
     ImuModel,
     ImuModelParams,
     accel_world_through,
+    body_rates_from_euler,
     euler_from_matrix,
     small_rotation,
 )
@@ -231,6 +232,17 @@ def test_turn_on_biases_are_drawn_per_seed_with_their_sigma():
     assert ba.std() == pytest.approx(p.accel_turn_on_bias_std, rel=0.08)
     assert bg.std() == pytest.approx(p.gyro_turn_on_bias_std, rel=0.08)
     assert abs(np.corrcoef(ba[:, 0], bg[:, 0])[0, 1]) < 0.15
+
+
+def test_body_rates_are_the_rotation_rate_of_the_euler_angles():
+    """[ω]× = Rᵀ dR/dt, by central differences of the Z-Y-X rotation."""
+    att, rates, h = np.array([0.3, -0.4, 1.2]), np.array([0.5, -0.2, 0.8]), 1e-6
+    r = np.array(rot_body_to_world(*att))
+    dr = (np.array(rot_body_to_world(*(att + h * rates)))
+          - np.array(rot_body_to_world(*(att - h * rates)))) / (2.0 * h)
+    w = r.T @ dr
+    expected = (w[2, 1], w[0, 2], w[1, 0])
+    assert body_rates_from_euler(att[0], att[1], *rates) == pytest.approx(expected, abs=1e-8)
 
 
 # --- attitude estimate ------------------------------------------------------------------------
@@ -497,7 +509,7 @@ def test_tilted_deck_surface_and_fast_path_agree_with_the_sampled_footprint():
     m = LidarLiteModel(LidarLiteParams(), streams(18))
     roll = 0.1                                          # a deck rolled by 0.1 rad
     n = (0.0, -math.sin(roll), math.cos(roll))
-    deck = Surface((0.0, 0.0, 0.0), n, (1.0, 0.0, 0.0), 5.0, 3.0, 0.3)
+    deck = Surface((0.0, 0.0, 0.0), n, (1.0, 0.0, 0.0), 5.0, 3.0, 0.3).check()
     o, d = (0.2, 0.3, 2.0), (0.0, 0.0, -1.0)
     fast = m.footprint_return(o, d, [deck])
     slow = m._sampled(*o, *d, [deck], m.params)
@@ -585,7 +597,7 @@ def test_exposure_time_of_a_row_has_rolling_readout_and_frame_jitter():
 # --- the suite: determinism and independence -----------------------------------------------
 
 def _run_suite(seed: int, extra_imu: int = 0, n: int = 300) -> list:
-    s = SensorSuite(SensorSuiteParams(), seed, CameraParams())
+    s = SensorSuite(SensorSuiteParams(), seed)
     eye = rot_body_to_world(0.05, -0.02, 1.0)
     for _ in range(extra_imu):
         s.imu.sample((0.0, 0.0, 0.0), eye, (0.0, 0.0, 0.0))
@@ -631,6 +643,19 @@ def test_sensor_streams_are_independent():
     new = model_streams(23, 'imu').normal
     assert [old() for _ in range(5)] != [new() for _ in range(5)]
     assert random.Random('23:imu').random() != model_streams(23, 'imu').draw.random()
+
+
+@pytest.mark.parametrize('args,field', [
+    (((0.0, 0.0, math.nan), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), 1.0, 1.0, 0.5), 'center_m'),
+    (((0.0, 0.0, 0.0), (0.0, 0.0, 2.0), (1.0, 0.0, 0.0), 1.0, 1.0, 0.5), 'normal'),
+    (((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.6, 0.8), 1.0, 1.0, 0.5), 'u_axis'),
+    (((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), 0.0, 1.0, 0.5), 'half_u_m'),
+    (((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), 1.0, 1.0, 1.5), 'reflectivity'),
+])
+def test_surface_check_names_the_bad_field(args, field):
+    with pytest.raises(ValueError, match=field):
+        Surface(*args).check()
+    assert Surface(*args) is not None          # building one per sample never validates
 
 
 @pytest.mark.parametrize('cls,kw,field', [

@@ -227,6 +227,16 @@ class AttitudeModel:
         return euler_from_matrix(m)
 
 
+def body_rates_from_euler(roll_rad: float, pitch_rad: float, roll_rate: float,
+                          pitch_rate: float, yaw_rate: float) -> Vec3:
+    """Body (FLU) angular rate of Z-Y-X Euler angle rates — what a gyro measures of the
+    vehicle model's (φ̇, θ̇, ψ̇): p = φ̇ − ψ̇ sθ, q = θ̇ cφ + ψ̇ sφ cθ, r = ψ̇ cφ cθ − θ̇ sφ."""
+    sr, cr = math.sin(roll_rad), math.cos(roll_rad)
+    sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
+    return (roll_rate - yaw_rate * sp, pitch_rate * cr + yaw_rate * sr * cp,
+            yaw_rate * cr * cp - pitch_rate * sr)
+
+
 def accel_world_through(specific_force_body: Vec3, roll_rad: float, pitch_rad: float,
                         yaw_rad: float, gravity_mps2: float) -> Vec3:
     """Vehicle acceleration in ENU, gravity removed, through a (possibly wrong) attitude:

@@ -23,20 +23,28 @@ from deckland_common import validate as chk
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 
-@dataclass(frozen=True, slots=True)
 class Surface:
     """A reflecting plane patch: a rectangle centred at ``center_m`` with unit ``normal``
     (only its normal side reflects), in-plane unit axis ``u_axis`` (v = normal × u), half
-    extents ``half_u_m``/``half_v_m`` (``math.inf``: unbounded) and 905 nm reflectivity."""
+    extents ``half_u_m``/``half_v_m`` (``math.inf``: unbounded) and 905 nm reflectivity.
 
-    center_m: Vec3
-    normal: Vec3
-    u_axis: Vec3
-    half_u_m: float
-    half_v_m: float
-    reflectivity: float
+    Built per sample from the world's truth, so construction does not validate (it costs
+    ~50 µs); :meth:`check` does, for surfaces from configuration and for tests.
+    """
 
-    def __post_init__(self) -> None:
+    __slots__ = ('center_m', 'half_u_m', 'half_v_m', 'normal', 'reflectivity', 'u_axis')
+
+    def __init__(self, center_m: Vec3, normal: Vec3, u_axis: Vec3, half_u_m: float,
+                 half_v_m: float, reflectivity: float) -> None:
+        self.center_m = center_m
+        self.normal = normal
+        self.u_axis = u_axis
+        self.half_u_m = half_u_m
+        self.half_v_m = half_v_m
+        self.reflectivity = reflectivity
+
+    def check(self) -> Surface:
+        """Validate (ValueError naming the field); returns self."""
         chk.finite_tuple('center_m', self.center_m, 3)
         chk.finite_tuple('normal', self.normal, 3)
         chk.finite_tuple('u_axis', self.u_axis, 3)
@@ -46,10 +54,10 @@ class Surface:
         chk.require(abs(u[0] ** 2 + u[1] ** 2 + u[2] ** 2 - 1.0) < 1e-6
                     and abs(u[0] * n[0] + u[1] * n[1] + u[2] * n[2]) < 1e-6, 'u_axis',
                     'must be a unit vector normal to the normal', u)
-        for name in ('half_u_m', 'half_v_m'):
-            v = getattr(self, name)
+        for name, v in (('half_u_m', self.half_u_m), ('half_v_m', self.half_v_m)):
             chk.require(v > 0.0 and not math.isnan(v), name, 'must be > 0 (inf: unbounded)', v)
         chk.in_range('reflectivity', self.reflectivity, 0.0, 1.0)
+        return self
 
 
 def horizontal_rectangle(cx: float, cy: float, z: float, half_x: float, half_y: float,
@@ -91,6 +99,10 @@ class LidarLiteParams:
     near_bias_spread: float = 0.5          # per-unit relative σ of near_bias_m
     near_noise_gain: float = 1.0           # σ × (1 + gain (1 − r / near_range_m)) below it
     dropout_prob: float = 0.0              # per sample, no reading
+    mount_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)   # beam origin, body FLU
+    pad_reflectivity: float = 0.8          # 905 nm: white-painted pad
+    deck_reflectivity: float = 0.25        # grey deck paint around the pad
+    ground_reflectivity: float = 0.3       # concrete
     timing: TimingParams = field(default_factory=_timing)
 
     def __post_init__(self) -> None:
@@ -110,6 +122,9 @@ class LidarLiteParams:
                     'must be <= far_range_m', self.near_range_m)
         chk.finite('near_bias_m', self.near_bias_m)
         chk.in_range('dropout_prob', self.dropout_prob, 0.0, 1.0)
+        chk.finite_tuple('mount_offset_m', self.mount_offset_m, 3)
+        for name in ('pad_reflectivity', 'deck_reflectivity', 'ground_reflectivity'):
+            chk.in_range(name, getattr(self, name), 0.0, 1.0)
         chk.require(isinstance(self.timing, TimingParams), 'timing', 'must be TimingParams',
                     self.timing)
 

@@ -1,6 +1,6 @@
 """Every honest sensor model of one seed with its timing: what the World will hold (pure).
 
-``SensorSuite(params, seed, nominal_camera)`` builds the IMU, attitude estimate, EKF local
+``SensorSuite(params, seed)`` builds the IMU, attitude estimate, EKF local
 position, LIDAR-Lite and camera models from the streams ``f'{seed}:<name>:draw|noise|timing'``
 (names: :data:`SENSOR_NAMES`) and one :class:`~deck_simulator.sensor_models.SensorTiming` per
 sensor. The World samples a model on its timing's clock and reads what has been delivered;
@@ -27,18 +27,21 @@ SENSOR_NAMES = ('imu', 'attitude', 'local_position', 'lidar', 'camera')
 
 @dataclass(frozen=True, slots=True)
 class SensorSuiteParams:
-    """The YAML-facing bundle, one section per sensor (``sensors.<name>.*``)."""
+    """The YAML-facing bundle, one section per sensor (``sensors.<name>.*``): ``camera`` is
+    the nominal camera (what the estimator is configured with), ``true_camera`` how the
+    simulated one differs from it."""
 
+    camera: CameraParams = field(default_factory=CameraParams)
+    true_camera: CameraModelParams = field(default_factory=CameraModelParams)
     imu: ImuModelParams = field(default_factory=ImuModelParams)
     attitude: AttitudeModelParams = field(default_factory=AttitudeModelParams)
     local_position: LocalPositionParams = field(default_factory=LocalPositionParams)
     lidar: LidarLiteParams = field(default_factory=LidarLiteParams)
-    camera: CameraModelParams = field(default_factory=CameraModelParams)
 
     def __post_init__(self) -> None:
-        for name, cls in (('imu', ImuModelParams), ('attitude', AttitudeModelParams),
-                          ('local_position', LocalPositionParams), ('lidar', LidarLiteParams),
-                          ('camera', CameraModelParams)):
+        for name, cls in (('camera', CameraParams), ('true_camera', CameraModelParams),
+                          ('imu', ImuModelParams), ('attitude', AttitudeModelParams),
+                          ('local_position', LocalPositionParams), ('lidar', LidarLiteParams)):
             chk.require(isinstance(getattr(self, name), cls), name,
                         f'must be {cls.__name__}', getattr(self, name))
 
@@ -52,8 +55,8 @@ class SensorSuite:
                  'lidar', 'lidar_timing', 'local_position', 'local_position_timing', 'params',
                  'seed')
 
-    def __init__(self, params: SensorSuiteParams, seed: int, nominal_camera: CameraParams,
-                 gravity_mps2: float = 9.81, start_s: float = 0.0) -> None:
+    def __init__(self, params: SensorSuiteParams, seed: int, gravity_mps2: float = 9.81,
+                 start_s: float = 0.0) -> None:
         self.params = params
         self.seed = seed
         p = params
@@ -76,5 +79,5 @@ class SensorSuite:
         self.lidar = LidarLiteModel(p.lidar, s)
         s = model_streams(seed, 'camera')
         self.camera_timing: SensorTiming[list[Block]] = SensorTiming(
-            p.camera.timing, s.timing, s.timing_normal, start_s)
-        self.camera = CameraModel(p.camera, nominal_camera, s)
+            p.true_camera.timing, s.timing, s.timing_normal, start_s)
+        self.camera = CameraModel(p.true_camera, p.camera, s)
