@@ -544,9 +544,8 @@ def test_default_lens_reproduces_the_ir_lock_characterisation():
                    + 4.79331390531725e-6 * (v - 100.0) ** 2 - 1.0)
             x = (-0.00293875727162397 * u + 0.470201163459835) / den
             y = (-0.003056843086277 * v + 0.3056843086277) / den
-            # their x, y are the ray's tangents with the sign of the pixel offset
-            pu, pv = cam.project_optical(abs(x) * np.sign(u - 160.0),
-                                         abs(y) * np.sign(v - 100.0), 1.0)
+            # (x, y): the ray's tangents, signed like the pixel offset from (160, 100)
+            pu, pv = cam.project_optical(x, y, 1.0)
             worst = max(worst, abs(pu - u), abs(pv - v))
     assert worst < 0.6
 
@@ -655,7 +654,6 @@ def test_sensor_streams_are_independent():
 def test_surface_check_names_the_bad_field(args, field):
     with pytest.raises(ValueError, match=field):
         Surface(*args).check()
-    assert Surface(*args) is not None          # building one per sample never validates
 
 
 @pytest.mark.parametrize('cls,kw,field', [
