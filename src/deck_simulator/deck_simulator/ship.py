@@ -231,7 +231,7 @@ def wave_spectrum(p: ShipParams, omega: Any) -> np.ndarray:
     return pierson_moskowitz(w, p.significant_height_m, p.peak_period_s)
 
 
-def motion_variances(p: ShipParams, n_omega: int = 4000, n_delta: int = 721) -> np.ndarray:
+def motion_variances(p: ShipParams, n_omega: int = 2000, n_delta: int = 181) -> np.ndarray:
     """Expected variance of each motion, ∫∫ |H_j(ω, β0 + δ)|² S(ω) D(δ) dδ dω, straight.
 
     Over the frequency band the components cover, [0.4, 4] ω_p, normalised like them so that
@@ -391,7 +391,7 @@ class ShipMotion:
     the exact sum (:meth:`exact_pad_state`, numpy, slow).
     """
 
-    __slots__ = ('_amp', '_c0', '_coef', '_coef_ri', '_dt', '_inv_dt', '_kcos', '_ksin',
+    __slots__ = ('_amp', '_c0', '_coef_ri', '_dt', '_inv_dt', '_kcos', '_ksin',
                  '_n_nodes', '_n_ready', '_omega', '_phase', '_tab', '_theta', '_we0',
                  'duration_s', 'params')
 
@@ -439,7 +439,6 @@ class ShipMotion:
         self._c0 = amp * response_functions(p, omega, beta0)        # (6, n) at t = 0
         iwe = 1j * self._we0
         coef = np.concatenate((self._c0, self._c0 * iwe, self._c0 * iwe * iwe))   # (18, n)
-        self._coef = coef
         self._coef_ri = np.concatenate((coef.real, coef.imag), axis=1)           # (18, 2n)
         self._dt = p.table_dt_s
         self._inv_dt = 1.0 / p.table_dt_s
