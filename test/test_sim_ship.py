@@ -8,19 +8,16 @@ import random
 import re
 
 from deck_simulator.deck import Deck, SineHeave
+from deck_simulator.deck_motion import DeckMotion, HeaveDeckMotion, PadState
 from deck_simulator.ship import (
     DOF,
-    SHIP_BUILTINS,
-    DeckMotion,
-    HeaveDeckMotion,
-    PadState,
     ShipMotion,
-    ShipParams,
     encounter_frequency,
     motion_variances,
     response_functions,
     second_order,
 )
+from deck_simulator.ship_params import SHIP_BUILTINS, ShipParams
 from deckland_common.frames import rot_body_to_world
 import numpy as np
 import pytest

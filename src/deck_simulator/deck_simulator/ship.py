@@ -4,36 +4,27 @@ The sea is a sum of random-phase wave components (JONSWAP / Pierson–Moskowitz 
 cos^2s-spread directions); each of the six ship motions is their sum through a response function
 of wave number, relative heading and encounter frequency (:func:`response_functions`). The ship
 follows a straight or constant-rate turning track and the pad rides on the rigid hull at a lever
-arm from the centre of motion. :class:`ShipMotion` tabulates the pad state with numpy, lazily in
-chunks, and interpolates it per call in plain floats; :class:`HeaveDeckMotion` gives the
-heave-only :class:`~deck_simulator.deck.Deck` the same :class:`DeckMotion` interface.
-Model, equations, parameters, sources and YAML schema: ``docs/world/ship.md``.
+arm from the centre of motion. :class:`ShipMotion` (a ``deck_motion.DeckMotion``) tabulates the
+pad state with numpy, lazily in chunks, and interpolates it per call in plain floats.
+Parameters: ``ship_params``. Model, equations, sources and YAML schema: ``docs/world/ship.md``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
 import math
 import random
-from typing import Any, Protocol
+from typing import Any
 
-from deckland_common.frames import Mat3, Vec3, rot_body_to_world, wrap_pi
-from deckland_common.validate import (
-    finite,
-    finite_tuple,
-    in_range,
-    integer_at_least,
-    is_finite_number,
-    one_of,
-    require,
-)
+from deckland_common.frames import rot_body_to_world, wrap_pi
+from deckland_common.validate import require
 import numpy as np
 
-from deck_simulator.deck import Deck, jonswap, pierson_moskowitz
+from deck_simulator.deck import jonswap, pierson_moskowitz
+from deck_simulator.deck_motion import PadState
+from deck_simulator.ship_params import ShipParams
 
 G_MPS2 = 9.81                      # as deck_simulator.vehicle
 TWO_PI = 2.0 * math.pi
-SPECTRA = ('jonswap', 'pierson_moskowitz')
 #: Order of the six motions in every (6, ...) array: surge, sway, heave [m]; roll, pitch,
 #: wave yaw [rad]. Surge/sway are along/across the mean heading; roll/pitch/yaw are the Z-Y-X
 #: Euler angles of the hull (yaw about the mean heading).
@@ -43,113 +34,6 @@ _CHUNK_NODES = 200                 # nodes tabulated per numpy call (20 s at 0.1
 _DBETA = 1e-3                      # rad, central difference of the response in heading
 _GOLDEN = 0.5 * (math.sqrt(5.0) - 1.0)
 _TURN_STEP_RAD = 0.02              # rad of turn between coefficient evaluations (table)
-
-
-@dataclass(frozen=True, slots=True)
-class ShipParams:
-    """The ``ship:`` mapping of a scenario; field = YAML key (docs/world/ship.md)."""
-
-    # vessel (a 20 m monohull workboat; docs/world/ship.md "Default vessel")
-    length_m: float = 20.0               # waterline length L
-    beam_m: float = 6.0                  # waterline beam B
-    draft_m: float = 1.6                 # mean draft d
-    # track: the mean (calm-water) motion of the centre of motion
-    speed_mps: float = 2.5               # U, forward speed through the water
-    heading_rad: float = 0.0             # ψ0, ENU yaw of the bow at t = 0
-    turn_rate_radps: float = 0.0         # r, constant rate of turn (+ = to port, CCW)
-    pad_position_m: tuple[float, float] = (0.0, 0.0)   # pad centre's mean position at t = 0
-    motion_centre_height_m: float = 0.6  # centre of motion above the mean water level (z = 0)
-    pad_offset_m: tuple[float, float, float] = (-5.0, 0.0, 1.9)  # pad top from it, hull FLU
-    # sea
-    significant_height_m: float = 0.88   # Hs = 4 √m0
-    peak_period_s: float = 7.5           # Tp
-    spectrum: str = 'jonswap'
-    jonswap_gamma: float = 3.3
-    wave_heading_rad: float = math.pi    # β0: waves' travel direction − ψ0 (π head, 0 following)
-    spreading_s: float | None = 1.0      # D(δ) ∝ cos^2s δ, |δ| ≤ π/2; None: long-crested
-    components: int = 100                # wave components (frequency bins)
-    # responses: damped second-order systems at the encounter frequency
-    heave_period_s: float = 2.8
-    heave_damping: float = 0.25
-    roll_period_s: float = 5.4
-    roll_damping: float = 0.08
-    pitch_period_s: float = 2.8
-    pitch_damping: float = 0.25
-    # numerics
-    table_dt_s: float = 0.1              # node spacing of the interpolated table
-
-    def __post_init__(self) -> None:
-        for name in ('length_m', 'beam_m', 'draft_m'):
-            in_range(name, getattr(self, name), 0.5, 400.0)
-        in_range('speed_mps', self.speed_mps, 0.0, 30.0)
-        finite('heading_rad', self.heading_rad)
-        in_range('turn_rate_radps', self.turn_rate_radps, -0.5, 0.5)
-        finite_tuple('pad_position_m', self.pad_position_m, 2)
-        finite('motion_centre_height_m', self.motion_centre_height_m)
-        finite_tuple('pad_offset_m', self.pad_offset_m, 3)
-        require(self.motion_centre_height_m + self.pad_offset_m[2] > 0.0, 'pad_offset_m',
-                'must put the pad top above the mean water level '
-                '(motion_centre_height_m + pad_offset_m[2] > 0)', self.pad_offset_m)
-        in_range('significant_height_m', self.significant_height_m, 0.0, 20.0)
-        in_range('peak_period_s', self.peak_period_s, 1.0, 30.0)
-        one_of('spectrum', self.spectrum, SPECTRA)
-        in_range('jonswap_gamma', self.jonswap_gamma, 1.0, 10.0)
-        finite('wave_heading_rad', self.wave_heading_rad)
-        if self.spreading_s is not None:
-            in_range('spreading_s', self.spreading_s, 0.0, 1000.0)
-        integer_at_least('components', self.components, 2)
-        require(self.components <= 1000, 'components', 'must be <= 1000', self.components)
-        for name in ('heave_period_s', 'roll_period_s', 'pitch_period_s'):
-            in_range(name, getattr(self, name), 0.5, 60.0)
-        for name in ('heave_damping', 'roll_damping', 'pitch_damping'):
-            v = getattr(self, name)
-            require(is_finite_number(v) and 0.0 < v <= 2.0, name, 'must be in (0, 2]', v)
-        in_range('table_dt_s', self.table_dt_s, 0.001, 0.2)
-        # YAML gives lists and ints: store tuples of floats
-        object.__setattr__(self, 'pad_position_m', tuple(float(v) for v in self.pad_position_m))
-        object.__setattr__(self, 'pad_offset_m', tuple(float(v) for v in self.pad_offset_m))
-
-    @classmethod
-    def from_mapping(cls, data: Any, path: str = 'ship') -> ShipParams:
-        """Build from a YAML mapping; unknown keys and bad values raise ``ValueError``."""
-        if not isinstance(data, dict):
-            raise ValueError(f'{path} must be a mapping, got {data!r}')
-        types = {f.name: str(f.type) for f in fields(cls)}
-        unknown = sorted(str(k) for k in data if k not in types)
-        if unknown:
-            raise ValueError(f'{path}: unknown key(s) {unknown}; known: {sorted(types)}')
-        values = {}
-        for key, value in data.items():     # YAML lists for tuples, ints for floats
-            if types[key].startswith('tuple') and isinstance(value, list | tuple):
-                value = tuple(_as_float(v) for v in value)
-            elif types[key].startswith('float'):
-                value = _as_float(value)
-            values[key] = value
-        try:
-            return cls(**values)
-        except ValueError as exc:
-            raise ValueError(f'{path}.{exc}') from None
-        except TypeError as exc:
-            raise ValueError(f'{path}: {exc}') from None
-
-
-def _as_float(value: Any) -> Any:
-    return float(value) if isinstance(value, int) and not isinstance(value, bool) else value
-
-
-#: The built-in parameter sets of the ship scenarios (docs/world/ship.md "Built-ins").
-SHIP_BUILTINS: dict[str, ShipParams] = {
-    # WMO sea state 3 (Bales et al. 1981 mean Hs and modal Tp), head seas, 2.5 m/s
-    'ship_ss3': ShipParams(significant_height_m=0.88, peak_period_s=7.5, speed_mps=2.5,
-                           wave_heading_rad=math.pi),
-    # WMO sea state 4, stern-quartering seas (waves from 45° off the stern), 2.5 m/s
-    'ship_ss4': ShipParams(significant_height_m=1.88, peak_period_s=8.8, speed_mps=2.5,
-                           wave_heading_rad=math.pi / 4.0),
-    # sea state 3, 2 m/s, turning to port at 1.5 °/s from head seas through beam seas
-    'ship_turning': ShipParams(significant_height_m=0.88, peak_period_s=7.5, speed_mps=2.0,
-                               wave_heading_rad=math.pi,
-                               turn_rate_radps=math.radians(1.5)),
-}
 
 
 # --- response functions (numpy) ---------------------------------------------------------------
@@ -252,129 +136,6 @@ def motion_variances(p: ShipParams, n_omega: int = 2000, n_delta: int = 181) -> 
         h = np.abs(response_functions(p, w[:, None], p.wave_heading_rad + d[None, :])) ** 2
         h2 = np.trapezoid(h * dens, d, axis=2)
     return np.trapezoid(h2 * s, w, axis=1)
-
-
-# --- pad state and the deck interface -----------------------------------------------------------
-
-def _cross(a: Vec3, b: Vec3) -> Vec3:
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-_IDENTITY: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-
-
-class PadState:
-    """The deck at one instant, world ENU; the deck frame is the pad frame. Read-only.
-
-    Deck frame: origin at the pad centre on its top surface, axes of the hull (FLU: x to the
-    bow, y to port, z out of the deck). ``rotation`` takes deck vectors to world vectors
-    (``rot_body_to_world(*rpy_rad)``); angular velocity and acceleration are world vectors.
-    A plain class, not a frozen dataclass: it is built on every call of the hot path.
-    """
-
-    __slots__ = ('accel_mps2', 'alpha_radps2', 'omega_radps', 'position_m', 'rotation',
-                 'rpy_rad', 'velocity_mps')
-
-    def __init__(self, position_m: Vec3, velocity_mps: Vec3, accel_mps2: Vec3, rpy_rad: Vec3,
-                 omega_radps: Vec3, alpha_radps2: Vec3, rotation: Mat3) -> None:
-        self.position_m = position_m
-        self.velocity_mps = velocity_mps
-        self.accel_mps2 = accel_mps2
-        self.rpy_rad = rpy_rad          # roll, pitch, yaw (Z-Y-X, frames); yaw = heading
-        self.omega_radps = omega_radps
-        self.alpha_radps2 = alpha_radps2
-        self.rotation = rotation
-
-    def as_tuple(self) -> tuple[Vec3, Vec3, Vec3, Vec3, Vec3, Vec3]:
-        """(position, velocity, acceleration, rpy, ω, α): for comparisons and logs."""
-        return (self.position_m, self.velocity_mps, self.accel_mps2, self.rpy_rad,
-                self.omega_radps, self.alpha_radps2)
-
-    def normal(self) -> Vec3:
-        """Unit normal of the deck plane (world), pointing up out of the deck."""
-        r = self.rotation
-        return r[0][2], r[1][2], r[2][2]
-
-    def plane(self) -> tuple[Vec3, Vec3]:
-        """The deck plane: a point on it (the pad centre) and its unit normal."""
-        return self.position_m, self.normal()
-
-    def height_under(self, x_m: float, y_m: float) -> float:
-        """World z of the deck plane below (or above) the world point (x, y)."""
-        p = self.position_m
-        r = self.rotation
-        nx, ny, nz = r[0][2], r[1][2], r[2][2]
-        return p[2] - (nx * (x_m - p[0]) + ny * (y_m - p[1])) / nz
-
-    def to_world(self, point_deck: Vec3) -> Vec3:
-        """World position of a point given in the deck frame."""
-        r = self.rotation
-        p = self.position_m
-        x, y, z = point_deck
-        return (p[0] + r[0][0] * x + r[0][1] * y + r[0][2] * z,
-                p[1] + r[1][0] * x + r[1][1] * y + r[1][2] * z,
-                p[2] + r[2][0] * x + r[2][1] * y + r[2][2] * z)
-
-    def to_deck(self, point_world: Vec3) -> Vec3:
-        """Deck-frame coordinates of a world point (z = height above the deck plane)."""
-        r = self.rotation
-        p = self.position_m
-        dx, dy, dz = point_world[0] - p[0], point_world[1] - p[1], point_world[2] - p[2]
-        return (r[0][0] * dx + r[1][0] * dy + r[2][0] * dz,
-                r[0][1] * dx + r[1][1] * dy + r[2][1] * dz,
-                r[0][2] * dx + r[1][2] * dy + r[2][2] * dz)
-
-    def point_velocity(self, point_world: Vec3) -> Vec3:
-        """World velocity of the deck-fixed point at a world position: v + ω × (p − P)."""
-        p = self.position_m
-        w = _cross(self.omega_radps, (point_world[0] - p[0], point_world[1] - p[1],
-                                      point_world[2] - p[2]))
-        v = self.velocity_mps
-        return v[0] + w[0], v[1] + w[1], v[2] + w[2]
-
-    def point_accel(self, point_world: Vec3) -> Vec3:
-        """World acceleration of that deck-fixed point: a + α × r + ω × (ω × r)."""
-        p = self.position_m
-        r = (point_world[0] - p[0], point_world[1] - p[1], point_world[2] - p[2])
-        t = _cross(self.alpha_radps2, r)
-        c = _cross(self.omega_radps, _cross(self.omega_radps, r))
-        a = self.accel_mps2
-        return a[0] + t[0] + c[0], a[1] + t[1] + c[1], a[2] + t[2] + c[2]
-
-    def relative_velocity(self, point_world: Vec3, velocity_world: Vec3) -> Vec3:
-        """Velocity of a body at a world point relative to the deck under it, deck axes."""
-        d = self.point_velocity(point_world)
-        r = self.rotation
-        vx = velocity_world[0] - d[0]
-        vy = velocity_world[1] - d[1]
-        vz = velocity_world[2] - d[2]
-        return (r[0][0] * vx + r[1][0] * vy + r[2][0] * vz,
-                r[0][1] * vx + r[1][1] * vy + r[2][1] * vz,
-                r[0][2] * vx + r[1][2] * vy + r[2][2] * vz)
-
-
-class DeckMotion(Protocol):
-    """What the world asks of any deck: its state at a time (the helpers are on PadState)."""
-
-    def pad_state(self, t_s: float) -> PadState: ...
-
-
-class HeaveDeckMotion:
-    """The heave-only :class:`~deck_simulator.deck.Deck` as a :class:`DeckMotion`.
-
-    Level, world-axis aligned (yaw 0), drifting at the deck's constant drift velocity.
-    """
-
-    __slots__ = ('deck',)
-
-    def __init__(self, deck: Deck) -> None:
-        self.deck = deck
-
-    def pad_state(self, t_s: float) -> PadState:
-        cx, cy, z, vz, az = self.deck.state(t_s)
-        zero: Vec3 = (0.0, 0.0, 0.0)
-        return PadState((cx, cy, z), (self.deck.drift_x, self.deck.drift_y, vz), (0.0, 0.0, az),
-                        zero, zero, zero, _IDENTITY)
 
 
 # --- the ship ----------------------------------------------------------------------------------
