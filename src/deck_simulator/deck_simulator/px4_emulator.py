@@ -12,11 +12,13 @@ It is stepped with the simulator's time ``t_s`` (never the wall clock):
     COMPONENT_ARM_DISARM, DO_SET_MODE, all answered with COMMAND_ACK), TIMESYNC requests
     (answered at once like PX4: ``tc1`` = emulator time in ns, ``ts1`` echoed), SET_ATTITUDE_TARGET
     (decoded back to ENU/FLU angles and newtons with the bridge's own
-    :class:`~mavlink_bridge.conversions.ThrustCalibration`), HEARTBEAT; then run the mode logic:
-    OFFBOARD is accepted only after setpoints have streamed > 1 s at > 2 Hz; if they stop for
-    ``offboard_loss_timeout_s`` (PX4 ``COM_OF_LOSS_T``, 1.0 s) the failsafe switches to
-    AUTO.LAND (or AUTO.LOITER, or AUTO.RTL) and :attr:`failsafe_active` is set; auto-disarm
-    after landing (``COM_DISARM_LAND``) or when never taking off (``COM_DISARM_PRFLT``).
+    :class:`~mavlink_bridge.conversions.ThrustCalibration`), HEARTBEAT, PARAM_REQUEST_READ /
+    PARAM_SET; then run the mode logic with PX4 v1.16's personality (:class:`Px4Personality`):
+    OFFBOARD is accepted with one setpoint younger than ``COM_OF_LOSS_T`` (always while
+    disarmed); if the setpoints stop for ``offboard_loss_timeout_s`` (``COM_OF_LOSS_T``, 1.0 s)
+    the failsafe switches to AUTO.LAND, AUTO.LOITER, AUTO.RTL or (PX4's default, Position
+    without RC) a descent in POSCTL, and :attr:`failsafe_active` is set; auto-disarm after
+    landing (``COM_DISARM_LAND``) or when never taking off (``COM_DISARM_PRFLT``).
 ``publish_state(t_s, ...)``
     the simulator's truth/sensor values; streams HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
     DISTANCE_SENSOR (cm, orientation 25), HIGHRES_IMU / SCALED_IMU and EXTENDED_SYS_STATE at the
@@ -34,7 +36,7 @@ It is stepped with the simulator's time ``t_s`` (never the wall clock):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 import socket
 from typing import NamedTuple
@@ -44,8 +46,11 @@ from mavlink_bridge.conversions import (
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
     MAV_SENSOR_ROTATION_PITCH_270,
+    PX4_OFFBOARD_LOSS_ACTIONS,
     ThrustCalibration,
     decode_attitude_target,
+    param_value_from_wire,
+    param_value_to_wire,
     px4_custom_mode,
     px4_mode_name,
     range_m_to_distance_cm,
@@ -63,6 +68,13 @@ MODE_AUTO_RTL = (4, 5)
 MODE_AUTO_LAND = (4, 6)
 _ACCEPTED_MODES = (MODE_POSCTL, MODE_ALTCTL, MODE_OFFBOARD, MODE_AUTO_LOITER, MODE_AUTO_LAND)
 FORCE_DISARM_MAGIC = 21196
+#: offboard_loss_action → the mode PX4 switches to (COM_OBL_RC_ACT); 'position' is PX4's
+#: default 0: without RC an emergency descent while the heartbeat reads POSCTL
+_LOSS_MODES = {'land': MODE_AUTO_LAND, 'return': MODE_AUTO_RTL, 'hold': MODE_AUTO_LOITER,
+               'position': MODE_POSCTL}
+_LOSS_ACTION_VALUE = {v: k for k, v in PX4_OFFBOARD_LOSS_ACTIONS.items()}
+MAV_PARAM_TYPE_INT32 = 6
+MAV_PARAM_TYPE_REAL32 = 9
 
 #: message id → default stream interval (s); ≤ 0 = off. SET_MESSAGE_INTERVAL changes them.
 DEFAULT_INTERVALS_S = {
@@ -96,10 +108,11 @@ class EmulatorParams:
     bind_port: int = 14580                 # PX4 SITL's onboard link port (0 = any free port)
     remote_host: str = '127.0.0.1'
     remote_port: int = 14540               # where the companion (the bridge) listens
-    offboard_loss_timeout_s: float = 1.0   # COM_OF_LOSS_T
-    offboard_loss_action: str = 'land'     # COM_OBL_RC_ACT: 'land' | 'hold' | 'return' (RTL)
-    offboard_warmup_s: float = 1.0         # setpoints needed before OFFBOARD is accepted
-    max_setpoint_gap_s: float = 0.5        # gaps above this restart the warm-up (> 2 Hz)
+    offboard_loss_timeout_s: float = 1.0   # COM_OF_LOSS_T (PX4 default 1.0 s)
+    #: COM_OBL_RC_ACT: 'land' (4, deckland's set-up, the README), 'hold' (5), 'return' (3,
+    #: RTL) or 'position' (0, PX4's default: without RC a descent while the heartbeat says
+    #: POSCTL)
+    offboard_loss_action: str = 'land'
     land_speed_mps: float = 0.7            # MPC_LAND_SPEED
     vz_gain_per_s: float = 2.0             # hold/land vertical speed loop gain
     disarm_landed_s: float = 2.0           # COM_DISARM_LAND (<= 0: off)
@@ -109,8 +122,7 @@ class EmulatorParams:
     thrust: ThrustCalibration = field(default_factory=ThrustCalibration)
 
     def __post_init__(self) -> None:
-        for name in ('offboard_loss_timeout_s', 'offboard_warmup_s', 'max_setpoint_gap_s',
-                     'land_speed_mps', 'vz_gain_per_s'):
+        for name in ('offboard_loss_timeout_s', 'land_speed_mps', 'vz_gain_per_s'):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f'EmulatorParams.{name} = {v!r}: must be a finite number > 0')
@@ -118,10 +130,10 @@ class EmulatorParams:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f'EmulatorParams.{name} = {v!r}: must be finite')
-        if self.offboard_loss_action not in ('land', 'hold', 'return'):
+        if self.offboard_loss_action not in _LOSS_MODES:
             raise ValueError(f'EmulatorParams.offboard_loss_action = '
-                             f"{self.offboard_loss_action!r}: must be 'land', 'hold' or "
-                             "'return'")
+                             f"{self.offboard_loss_action!r}: must be 'land', 'hold', "
+                             "'return' or 'position'")
         for name in ('system_id', 'component_id'):
             if not 1 <= getattr(self, name) <= 255:
                 raise ValueError(f'EmulatorParams.{name} = {getattr(self, name)!r}: '
@@ -245,7 +257,7 @@ class Px4Emulator:
         self.acks: list[tuple[int, int]] = []   # (command, result) sent, for tests/diagnostics
         self.setpoint: VehicleCommand | None = None
         self.last_setpoint_s = -math.inf
-        self._stream_start_s = math.inf
+        self._user_mode = MODE_POSCTL   # PX4's "user intention": restored after a failsafe
         self.last_peer_heartbeat_s = -math.inf
         self._t_s = -math.inf
         self._t0_s: float | None = None
@@ -370,7 +382,8 @@ class Px4Emulator:
         if mode == MODE_OFFBOARD and self.setpoint is not None:
             return self.setpoint
         cal = self.params.thrust
-        if mode == MODE_AUTO_LAND:
+        if mode == MODE_AUTO_LAND or (mode == MODE_POSCTL and self.failsafe_active):
+            # (POSCTL in a failsafe: PX4's 'position' action without RC is a descent)
             vz_ref, kind = -self.params.land_speed_mps, (
                 'failsafe_land' if self.failsafe_active else 'land')
         elif mode == MODE_AUTO_RTL:
@@ -427,8 +440,6 @@ class Px4Emulator:
                 self.rejected['nan'] += 1
                 return
             self.counters['setpoints_rx'] += 1
-            if t_s - self.last_setpoint_s > p.max_setpoint_gap_s:
-                self._stream_start_s = t_s
             self.last_setpoint_s = t_s
             self.setpoint = VehicleCommand('offboard', tgt.roll_rad, tgt.pitch_rad,
                                            tgt.yaw_rad, tgt.thrust_n)
@@ -446,11 +457,25 @@ class Px4Emulator:
                 return
             self.counters['commands_rx'] += 1
             self._handle_command(t_s, msg)
+        elif kind in ('PARAM_REQUEST_READ', 'PARAM_SET'):
+            if msg.target_system not in (0, p.system_id):
+                self.rejected['wrong_target'] += 1
+                return
+            self._handle_param(msg)
 
     def _handle_command(self, t_s: float, msg) -> None:
+        """COMMAND_LONG with PX4 v1.16's answers (measured against its SITL): HEARTBEAT's
+        interval is refused (FAILED), a disarm in the air is TEMPORARILY_REJECTED, a
+        DO_SET_MODE is ACKed twice (the MAVLink receiver's ACCEPTED, then the commander's
+        verdict), OFFBOARD needs one setpoint younger than COM_OF_LOSS_T when armed and is
+        always accepted while disarmed (arming in OFFBOARD then needs the setpoint)."""
         cmd = msg.command
+        fresh = t_s - self.last_setpoint_s <= self.params.offboard_loss_timeout_s
         if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
+            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                self._ack(cmd, mavlink.MAV_RESULT_FAILED, msg)   # PX4: 1 Hz, by design
+                return
             if msg_id not in self.intervals_s or not math.isfinite(interval_us):
                 self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
                 return
@@ -464,6 +489,10 @@ class Px4Emulator:
             self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
         elif cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             if msg.param1 >= 0.5:
+                if (self.main_mode, self.sub_mode) == MODE_OFFBOARD and not fresh \
+                        and not self.armed:
+                    self._ack(cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, msg)
+                    return
                 if not self.armed:
                     self.armed = True
                     self._armed_since_s = t_s
@@ -474,40 +503,84 @@ class Px4Emulator:
             elif self.landed or int(msg.param2) == FORCE_DISARM_MAGIC or not self.armed:
                 self._disarm()
                 self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
-            else:
-                self._ack(cmd, mavlink.MAV_RESULT_DENIED, msg)  # no disarm in the air
+            else:   # no disarm in the air (PX4: "Disarming denied: not landed")
+                self._ack(cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, msg)
         elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
+            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)      # PX4's MAVLink receiver
             mode = (int(msg.param2), int(msg.param3) if int(msg.param2) == 4 else 0)
             if not int(msg.param1) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or \
                     mode not in _ACCEPTED_MODES:
                 self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
                 return
-            if mode == MODE_OFFBOARD and not self._stream_warm(t_s):
+            if mode == MODE_OFFBOARD and self.armed and not fresh:
                 self._ack(cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, msg)
                 return
             self._set_mode(mode)
+            self._user_mode = mode
             self.failsafe_active = False
-            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
+            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)       # the commander's verdict
         else:
             self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
 
-    def _stream_warm(self, t_s: float) -> bool:
-        """Setpoints have streamed for > offboard_warmup_s at > 2 Hz and are still flowing."""
+    # --- parameters (PX4 v1.16 names, defaults and encoding) -----------------------------
+
+    def param_table(self) -> dict[str, tuple[int, float]]:
+        """The parameters this emulator answers, ``name → (MAV_PARAM_TYPE, value)``: PX4
+        v1.16's names and defaults, with the values this emulator behaves by."""
         p = self.params
-        return (t_s - self.last_setpoint_s <= p.max_setpoint_gap_s
-                and t_s - self._stream_start_s > p.offboard_warmup_s)
+        return {
+            'COM_OBL_RC_ACT': (MAV_PARAM_TYPE_INT32,
+                               float(_LOSS_ACTION_VALUE[p.offboard_loss_action])),
+            'COM_OF_LOSS_T': (MAV_PARAM_TYPE_REAL32, p.offboard_loss_timeout_s),
+            'MPC_THR_HOVER': (MAV_PARAM_TYPE_REAL32, p.thrust.hover_thrust_norm),
+            'MPC_USE_HTE': (MAV_PARAM_TYPE_INT32, 1.0),
+            'MPC_LAND_SPEED': (MAV_PARAM_TYPE_REAL32, p.land_speed_mps),
+            'COM_DISARM_LAND': (MAV_PARAM_TYPE_REAL32, p.disarm_landed_s),
+            'COM_DISARM_PRFLT': (MAV_PARAM_TYPE_REAL32, p.disarm_preflight_s),
+        }
+
+    def _handle_param(self, msg) -> None:
+        """PARAM_REQUEST_READ (by name; PX4 answers nothing for an unknown one) and PARAM_SET
+        of the behaviour parameters (COM_OBL_RC_ACT, COM_OF_LOSS_T, MPC_LAND_SPEED), each
+        answered with PARAM_VALUE; integers are encoded bytewise as PX4 does."""
+        name = msg.param_id.rstrip('\x00') if isinstance(msg.param_id, str) else ''
+        table = self.param_table()
+        if name not in table:
+            return
+        if msg.get_type() == 'PARAM_SET':
+            typ = table[name][0]
+            v = param_value_from_wire(msg.param_value, typ, True)
+            try:
+                if name == 'COM_OBL_RC_ACT' and int(v) in PX4_OFFBOARD_LOSS_ACTIONS and \
+                        PX4_OFFBOARD_LOSS_ACTIONS[int(v)] in _LOSS_MODES:
+                    self.params = replace(self.params,
+                                          offboard_loss_action=PX4_OFFBOARD_LOSS_ACTIONS[int(v)])
+                elif name == 'COM_OF_LOSS_T':
+                    self.params = replace(self.params, offboard_loss_timeout_s=v)
+                elif name == 'MPC_LAND_SPEED':
+                    self.params = replace(self.params, land_speed_mps=v)
+            except ValueError:
+                self.rejected['bad_data'] += 1   # out of range: the value stays
+            table = self.param_table()
+        names = list(table)
+        typ, value = table[name]
+        self.mav.param_value_send(name.encode('ascii'), param_value_to_wire(value, typ, True),
+                                  typ, len(names), names.index(name))
 
     def _disarm(self) -> None:
         self.armed = False
+        if self.failsafe_active:
+            # PX4 restores the user's mode once the failsafe clears (at disarm): after a
+            # failsafe landing the heartbeat reads OFFBOARD while disarmed (v1.16, measured)
+            self.main_mode, self.sub_mode = self._user_mode
         self.failsafe_active = False  # counters['failsafes'] keeps the history
         self._landed_since_s = None
 
     def _run_logic(self, t_s: float) -> None:
         p = self.params
-        if (self.main_mode, self.sub_mode) == MODE_OFFBOARD and \
+        if self.armed and (self.main_mode, self.sub_mode) == MODE_OFFBOARD and \
                 t_s - self.last_setpoint_s > p.offboard_loss_timeout_s:
-            self._set_mode({'land': MODE_AUTO_LAND, 'return': MODE_AUTO_RTL}.get(
-                p.offboard_loss_action, MODE_AUTO_LOITER))
+            self._set_mode(_LOSS_MODES[p.offboard_loss_action])
             self.failsafe_active = True
             self.counters['failsafes'] += 1
         if not self.armed:
