@@ -104,7 +104,7 @@ class BridgeParams:
     #: 'autopilot': PX4's own hover (ATTITUDE_TARGET in its hover, else MPC_THR_HOVER);
     #: 'parameter': thrust.hover_thrust_norm as configured
     hover_thrust_source: str = 'autopilot'
-    hover_window_s: float = 2.0            # steady-hover window of the measurement
+    hover_window_s: float = 4.0            # steady-hover window of the measurement
     trim_telemetry: bool = True            # SET_MESSAGE_INTERVAL -1 for unused streams
     param_retry_s: float = 2.0             # PARAM_REQUEST_READ repeated until answered
     link_monitor: LinkMonitorParams = field(default_factory=lambda: LinkMonitorParams())

@@ -78,8 +78,8 @@ class HoverThrustEstimator:
     __slots__ = ('_cos_tilt_min', '_samples', 'estimate', 'max_spread', 'max_vz_mps',
                  'window_s')
 
-    def __init__(self, window_s: float = 2.0, max_vz_mps: float = 0.15,
-                 max_tilt_rad: float = 0.17, max_spread: float = 0.03) -> None:
+    def __init__(self, window_s: float = 4.0, max_vz_mps: float = 0.15,
+                 max_tilt_rad: float = 0.17, max_spread: float = 0.05) -> None:
         for name, v in (('window_s', window_s), ('max_vz_mps', max_vz_mps),
                         ('max_tilt_rad', max_tilt_rad), ('max_spread', max_spread)):
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
