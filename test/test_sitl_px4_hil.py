@@ -1,16 +1,24 @@
-"""PX4 v1.16 SITL flying deckland's physics (deck_simulator.px4_hil, the Simulator MAVLink API):
-PX4 (airframe 10016 none_iris, parameters from px4_params) boots on the world's clock, arms,
-takes off with its own take-off, and the mavlink_bridge node hands over to OFFBOARD and holds
-the hover on SET_ATTITUDE_TARGET. Marked ``sitl``; skipped when PX4 is not found."""
+"""deck_simulator.px4_hil, deckland's world as PX4's simulator (the Simulator MAVLink API).
 
+Without PX4: the sensors it sends are the world's physics in PX4's frames and units, the motor
+outputs drive the motors through the thrust curve, the lockstep waits for PX4's answer, and
+px4_params' geometry gives PX4 the torques of the paper's mixer (1). With PX4 (``sitl``,
+skipped when PX4 is not found): PX4 (airframe 10016 none_iris) boots on the world's clock,
+arms, takes off with its own take-off, and the mavlink_bridge node hands over to OFFBOARD and
+holds the hover on SET_ATTITUDE_TARGET."""
+
+import itertools
 import math
 import threading
 import time
 
 from deck_simulator.px4_hil import HilParams, Px4Hil, px4_params
 from deck_simulator.scenario import load_scenario
+from deck_simulator.vehicle import unmix
 from deck_simulator.world import World
 from deckland.sitl.px4 import NONE_IRIS, Px4NotFoundError, Px4Sitl, find_px4
+from mavlink_bridge.conversions import distance_sensor_to_rep117
+from pymavlink.dialects.v20 import common as mavlink
 import pytest
 from test_sitl_px4_bridge import Operator, call, fit_accel, wait_for
 
@@ -20,7 +28,132 @@ try:
 except Px4NotFoundError as exc:
     PX4_ROOT, NO_PX4 = None, str(exc)
 
-pytestmark = [pytest.mark.sitl, pytest.mark.skipif(PX4_ROOT is None, reason=NO_PX4)]
+SITL = [pytest.mark.sitl, pytest.mark.skipif(PX4_ROOT is None, reason=NO_PX4)]
+
+
+class FakePx4:
+    """The autopilot side of the TCP link, in memory: what the simulator sends is parsed; the
+    test queues HIL_ACTUATOR_CONTROLS (answered to the latest HIL_SENSOR when ``auto``)."""
+
+    def __init__(self, auto_controls=None):
+        self.rx = mavlink.MAVLink(None)
+        self.enc = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.sent = []
+        self.inbox = b''
+        self.auto = auto_controls          # (u0..u3, armed) answered to each HIL_SENSOR
+
+    def accept(self, timeout_s):
+        return True
+
+    def write(self, data):
+        for m in self.rx.parse_buffer(data) or []:
+            self.sent.append(m)
+            if m.get_type() == 'HIL_SENSOR' and self.auto is not None:
+                self.controls(m.time_usec, *self.auto)
+
+    def controls(self, t_us, u, armed=True):
+        c = list(u) + [0.0] * (16 - len(u))
+        self.inbox += self.enc.hil_actuator_controls_encode(
+            t_us, c, 1 | (128 if armed else 0), 1).pack(self.enc)
+
+    def receive(self, timeout_s):
+        data, self.inbox = self.inbox, b''
+        return data
+
+    def close(self):
+        pass
+
+    def last(self, kind):
+        return [m for m in self.sent if m.get_type() == kind]
+
+
+def hil_world(**kw):
+    sc = load_scenario('paper')
+    world = World(sc, 1, physics_dt_s=1.0 / 500.0)
+    fake = FakePx4(**kw)
+    return world, Px4Hil(world, HilParams(lockstep_timeout_s=0.05), link=fake), fake
+
+
+def test_sensors_at_rest_are_gravity_earth_field_and_isa_pressure():
+    world, hil, fake = hil_world()
+    hil.step(0.1)                                   # 25 periods on the ground, no PX4 yet
+    assert world.resting_on == 'ground' and world.contact is None
+    imu = fake.last('HIL_SENSOR')
+    assert len(imu) == 25 and imu[0].time_usec == 1_000_000
+    assert [b.time_usec - a.time_usec for a, b in itertools.pairwise(imu)] == [4000] * 24
+    acc = [(m.xacc, m.yacc, m.zacc) for m in imu]
+    mean = [sum(a[i] for a in acc) / len(acc) for i in range(3)]
+    g = world.params.gravity_mps2
+    assert mean == pytest.approx([0.0, 0.0, -g], abs=0.05)      # FRD specific force at rest
+    assert all(abs(m.xgyro) < 0.03 for m in imu)
+    # the Earth field in the body: level, so its vertical part is F sin(I) down
+    m = [x for x in imu if x.fields_updated & 0x1C0][-1]
+    p = hil.params
+    f, inc = p.mag_strength_gauss, math.radians(p.mag_inclination_deg)
+    assert m.zmag == pytest.approx(f * math.sin(inc), abs=0.01)
+    assert math.hypot(m.xmag, m.ymag) == pytest.approx(f * math.cos(inc), abs=0.01)
+    # heading: the horizontal field points to magnetic north (heading = the declination), so
+    # seen from the nose (FRD, clockwise) it lies at declination − heading
+    yaw_ned = math.pi / 2 - world.vehicle.yaw
+    field_dir = math.atan2(m.ymag, m.xmag)
+    assert math.remainder(field_dir - (math.radians(p.mag_declination_deg) - yaw_ned),
+                          2 * math.pi) == pytest.approx(0.0, abs=0.05)
+    b = [x for x in imu if x.fields_updated & 0x1A00][-1]
+    h = p.home_alt_m + world.vehicle.z
+    assert b.abs_pressure == pytest.approx(1013.25 * (1 - 2.25577e-5 * h) ** 5.25588, abs=0.05)
+    assert b.pressure_alt == pytest.approx(h, abs=1e-3)
+    gps = fake.last('HIL_GPS')[-1]
+    assert gps.fix_type == 3 and abs(gps.lat - round(p.home_lat_deg * 1e7)) < 600   # < 7 m
+    ds = fake.last('DISTANCE_SENSOR')[-1]
+    assert ds.orientation == 25
+    r = distance_sensor_to_rep117(ds.current_distance, ds.min_distance, ds.max_distance)
+    assert r == pytest.approx(world.params.gear_height_m, abs=0.08)   # lidar at the gear
+    assert fake.last('HIL_STATE_QUATERNION')
+
+
+def test_motor_outputs_drive_the_motors_through_the_thrust_curve():
+    world, hil, fake = hil_world(auto_controls=([0.647, 0.647, 0.647, 0.647], True))
+    vp = world.params
+    hil.step(0.004)                    # first period: PX4's answer arrives during the read
+    hil.step(1.0)
+    e = hil.params.thrust_expo
+    f = vp.motor_max_n * (e * 0.647 ** 2 + (1 - e) * 0.647)
+    assert world.vehicle.motor_cmd == pytest.approx((f,) * 4)
+    assert world.vehicle.thrust_n == pytest.approx(4 * f, rel=1e-3)      # after the lag
+    # u = 0.647 with THR_MDL_FAC = e: 0.4986 of the maximum, i.e. hover at T/W = 2
+    assert 4 * f / (vp.mass_kg * vp.gravity_mps2) == pytest.approx(0.4986 * 2, abs=1e-3)
+    assert hil.counters['lockstep_timeouts'] == 0 and hil.counters['controls_rx'] >= 250
+    fake.auto = ([0.9, 0.9, 0.9, 0.9], False)                  # disarmed: motors off
+    hil.step(0.1)
+    assert world.vehicle.motor_cmd == (0.0, 0.0, 0.0, 0.0) and not hil.armed
+
+
+def test_lockstep_waits_for_px4_and_counts_a_silent_period():
+    _, hil, fake = hil_world(auto_controls=([0.0] * 4, True))
+    hil.step(0.008)
+    assert hil.got_first_controls
+    fake.auto = None                                           # PX4 stops answering
+    t0 = time.monotonic()
+    hil.step(0.004)
+    assert time.monotonic() - t0 >= 0.05                       # waited lockstep_timeout_s
+    assert hil.counters['lockstep_timeouts'] == 1
+
+
+def test_px4_geometry_gives_the_torques_of_the_papers_mixer():
+    """PX4's allocation sees rotor i at (PX, PY) with moment KM: roll −PY F, pitch PX F, yaw
+    KM F (FRD). With px4_params these equal (1) — u_φ = L(F2−F4), u_θ = L(F3−F1),
+    u_ψ = c_d(−F1+F2−F3+F4) in FLU — for any motor forces."""
+    vp = load_scenario('paper').vehicle
+    p = px4_params(vp)
+    for forces in ((1.0, 2.0, 3.0, 4.0), (5.0, 0.5, 2.0, 7.0)):
+        roll = sum(-p[f'CA_ROTOR{i}_PY'] * f for i, f in enumerate(forces))
+        pitch = sum(p[f'CA_ROTOR{i}_PX'] * f for i, f in enumerate(forces))
+        yaw = sum(p[f'CA_ROTOR{i}_KM'] * f for i, f in enumerate(forces))
+        _, u_phi, u_theta, u_psi = unmix(*forces, vp.arm_length_m, vp.yaw_moment_coeff_m)
+        # FRD ↔ FLU: roll the same, pitch and yaw negated
+        assert (roll, pitch, yaw) == pytest.approx((u_phi, -u_theta, -u_psi))
+    assert p['MPC_THR_HOVER'] == pytest.approx(1.0 / vp.thrust_to_weight)
+    assert p['COM_OBL_RC_ACT'] == 4 and p['COM_RC_IN_MODE'] == 4
 
 
 class Lockstep:
@@ -50,6 +183,8 @@ class Lockstep:
         self.thread.join(timeout=3.0)
 
 
+@SITL[0]
+@SITL[1]
 def test_px4_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_context):
     from deckland_common.frames import euler_to_quaternion
     from geometry_msgs.msg import QuaternionStamped, WrenchStamped
