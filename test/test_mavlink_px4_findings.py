@@ -338,3 +338,19 @@ def test_distance_on_the_ground_is_too_close_not_no_return():
     assert distance_sensor_to_rep117(0xFFFF, 5, 4000) == math.inf   # unknown
     assert distance_sensor_to_rep117(250, 5, 4000) == pytest.approx(2.5)
     assert distance_sensor_to_rep117(250, 0, 0) == pytest.approx(2.5)   # max unknown
+
+
+def test_bad_parameter_and_attitude_target_input_changes_nothing():
+    px4 = Px4()
+    before = dict(px4.core.autopilot_params)
+    for value, typ in ((math.nan, REAL32), (math.inf, REAL32), (0.5, 200), (-1e38, 0)):
+        px4.core.on_param_value('COM_OF_LOSS_T', value, typ)
+    px4.core.on_param_value(None, 1.0, REAL32)
+    # (a value of an unknown type is taken as a float; a nonsense timeout then refuses)
+    assert px4.core.autopilot_params['COM_OF_LOSS_T'] in (before['COM_OF_LOSS_T'], -1e38)
+    assert not px4.core.request_offboard(px4.t)[0]
+    px4.core.on_extended_sys_state(2)
+    for bad in ((math.nan, 1.0, 0.0), (0.5, math.nan, 0.0), (0.5, 1.0, math.inf),
+                (1.5, 1.0, 0.0), (-0.2, 1.0, 0.0)):
+        px4.core.on_attitude_target(0.0, *bad)
+    assert not px4.core.hover.valid and px4.core.hover._samples == []

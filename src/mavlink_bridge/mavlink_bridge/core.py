@@ -792,9 +792,9 @@ class BridgeCore:
         lt = ap.get('COM_OF_LOSS_T')
         if lt is None:
             return 'COM_OF_LOSS_T not read yet: the offboard-loss timeout is unknown'
-        if lt > p.max_offboard_loss_timeout_s:
-            return (f'COM_OF_LOSS_T = {lt:g} s > {p.max_offboard_loss_timeout_s:g} s: PX4 would '
-                    'fly a stale setpoint that long after the companion stops')
+        if not 0.0 < lt <= p.max_offboard_loss_timeout_s:
+            return (f'COM_OF_LOSS_T = {lt:g} s not in (0, {p.max_offboard_loss_timeout_s:g}] s: '
+                    'PX4 would fly a stale setpoint that long after the companion stops')
         if p.hover_thrust_source == 'autopilot' and not self.hover.valid and \
                 'MPC_THR_HOVER' not in ap:
             return 'MPC_THR_HOVER not read yet: the hover thrust is unknown'
