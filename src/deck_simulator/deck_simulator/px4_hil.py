@@ -19,6 +19,7 @@ import random
 import select
 import socket
 import time
+from typing import Protocol
 
 from deckland_common.frames import (
     body_rates_from_euler,
@@ -136,6 +137,21 @@ def px4_params(vehicle: VehicleParams, hil: HilParams | None = None, *,
         'EKF2_MAG_DECL': hil.mag_declination_deg,
     })
     return p
+
+
+class SimAutopilot(Protocol):
+    """What the simulator loop needs of a real autopilot flying the world's vehicle (PX4
+    over the Simulator MAVLink API here; ArduPilot's JSON backend, issue 17, is the same
+    shape): connect, then advance the world in the autopilot's lockstep."""
+
+    armed: bool
+    counters: dict[str, int]
+
+    def accept(self, timeout_s: float) -> bool: ...
+
+    def step(self, dt_s: float) -> int: ...
+
+    def close(self) -> None: ...
 
 
 class TcpServerLink:
