@@ -195,13 +195,15 @@ def hil(seconds: float) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m deckland.sitl.measure', description=__doc__)
-    ap.add_argument('what', nargs='*', default=['link', 'bridge_cpu', 'hil'],
-                    choices=['link', 'bridge_cpu', 'hil'])
+    ap.add_argument('what', nargs='*', help='link, bridge_cpu, hil (default: all three)')
     ap.add_argument('--seconds', type=float, default=20.0)
     ap.add_argument('--out', type=pathlib.Path)
     args = ap.parse_args(argv)
+    bad = set(args.what) - {'link', 'bridge_cpu', 'hil'}
+    if bad:
+        ap.error(f'unknown measurement(s) {sorted(bad)}: choose from link, bridge_cpu, hil')
     res: dict = {'load_before': os.getloadavg()[0]}
-    for what in args.what:
+    for what in args.what or ['link', 'bridge_cpu', 'hil']:
         res[what] = {'link': link_rates, 'bridge_cpu': bridge_cpu, 'hil': hil}[what](
             args.seconds)
         print(what, json.dumps(res[what]), flush=True)
