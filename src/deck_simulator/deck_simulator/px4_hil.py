@@ -2,18 +2,18 @@
 
 PX4 SITL with an external simulator (airframe 10016 ``none_iris``, module
 ``simulator_mavlink``) connects to TCP 4560 + instance; :class:`Px4Hil` listens there. Each
-lockstep period it sends HIL_SENSOR (IMU; magnetometer and barometer at their rates) stamped
-with the world's time — PX4's clock follows it — plus HIL_GPS, HIL_STATE_QUATERNION (ground
-truth) and DISTANCE_SENSOR (deckland's lidar as PX4's distance sensor), waits for the
-HIL_ACTUATOR_CONTROLS PX4 computes from them, and turns the four motor outputs into motor
-thrusts through a thrust curve (the vehicle model's first-order motor lag follows) before the
-world steps on. Deck, ship, contact, camera and lidar stay deckland's
-(:class:`~deck_simulator.world.World`). :func:`px4_params` makes PX4 see the paper's vehicle.
+lockstep period it sends HIL_SENSOR (the simulator's IMU model; magnetometer and barometer at
+their rates) stamped with the world's time — PX4's clock follows it — plus HIL_GPS,
+HIL_STATE_QUATERNION (ground truth) and DISTANCE_SENSOR (deckland's lidar as PX4's distance
+sensor), waits for the HIL_ACTUATOR_CONTROLS PX4 computes from them, and turns the four motor
+outputs into motor thrusts through a thrust curve (the vehicle's motor lag follows) before the
+world steps on. Deck, contact, camera and lidar stay the world's. :func:`px4_params` makes PX4
+see the paper's vehicle.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 import random
 import select
@@ -21,14 +21,7 @@ import socket
 import time
 from typing import Protocol
 
-from deckland_common.frames import (
-    body_rates_from_euler,
-    enu_to_ned,
-    flu_to_frd,
-    mat_t_vec,
-    ned_to_enu,
-    rot_body_to_world,
-)
+from deckland_common.frames import enu_to_ned, flu_to_frd, mat_t_vec, ned_to_enu, rot_body_to_world
 from mavlink_bridge.conversions import (
     MAV_SENSOR_ROTATION_PITCH_270,
     euler_enu_to_quat_ned,
@@ -36,6 +29,8 @@ from mavlink_bridge.conversions import (
 )
 from pymavlink.dialects.v20 import common as mavlink
 
+from deck_simulator.sensor_imu import ImuModel, ImuModelParams, body_rates_from_euler
+from deck_simulator.sensor_models import model_streams
 from deck_simulator.vehicle import VehicleParams
 from deck_simulator.world import World
 
@@ -65,10 +60,10 @@ class HilParams:
     baro_rate_hz: float = 50.0                # GPS 10 Hz (sitl_gazebo models)
     gps_rate_hz: float = 10.0
     state_rate_hz: float = 50.0               # HIL_STATE_QUATERNION (ground truth)
-    # noise: ADIS16448 (the sitl_gazebo IMU plugin's defaults), HMC5883L noise floor 2 mG,
-    # MS5611 RMS resolution 0.012 mbar at OSR 4096
-    gyro_noise_density: float = 3.394e-4      # rad/s/√Hz
-    accel_noise_density: float = 4.0e-3       # m/s²/√Hz
+    #: the raw IMU: the simulator's own model (sensor_imu, ICM-42688-P noise, vibration,
+    #: turn-on bias and bias walk), sampled at imu_rate_hz
+    imu: ImuModelParams = field(default_factory=ImuModelParams)
+    # noise: HMC5883L noise floor 2 mG, MS5611 RMS resolution 0.012 mbar at OSR 4096
     mag_noise_gauss: float = 0.002
     baro_noise_hpa: float = 0.012
     gps_eph_m: float = 0.3                    # reported accuracy (HIL_GPS eph/epv)
@@ -87,8 +82,9 @@ class HilParams:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
                 raise ValueError(f'HilParams.{name} = {v!r}: must be a finite number > 0')
-        for name in ('gyro_noise_density', 'accel_noise_density', 'mag_noise_gauss',
-                     'baro_noise_hpa', 'gps_eph_m', 'gps_epv_m'):
+        if not isinstance(self.imu, ImuModelParams):
+            raise ValueError('HilParams.imu must be an ImuModelParams')
+        for name in ('mag_noise_gauss', 'baro_noise_hpa', 'gps_eph_m', 'gps_epv_m'):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0.0):
                 raise ValueError(f'HilParams.{name} = {v!r}: must be a finite number >= 0')
@@ -232,9 +228,9 @@ class Px4Hil:
                          'gps': 1.0 / p.gps_rate_hz, 'state': 1.0 / p.state_rate_hz,
                          'range': 1.0 / world.scenario.sensors.lidar.rate_hz}
         self._rng = {k: random.Random(f'{world.seed}:px4_hil:{p.seed}:{k}')
-                     for k in ('imu', 'mag', 'baro')}
-        self._sigma_gyro = p.gyro_noise_density * math.sqrt(p.imu_rate_hz)
-        self._sigma_accel = p.accel_noise_density * math.sqrt(p.imu_rate_hz)
+                     for k in ('mag', 'baro')}
+        self.imu = ImuModel(p.imu, model_streams(world.seed, f'px4_hil:{p.seed}:imu'),
+                            self.period_s, world.params.gravity_mps2)
         d, i = math.radians(p.mag_declination_deg), math.radians(p.mag_inclination_deg)
         f = p.mag_strength_gauss
         self._mag_enu = ned_to_enu(f * math.cos(i) * math.cos(d), f * math.cos(i) * math.sin(d),
@@ -360,13 +356,13 @@ class Px4Hil:
         t = w.t_s
         v = w.vehicle
         r = rot_body_to_world(v.roll, v.pitch, v.yaw)
-        g = w.params.gravity_mps2
-        ri, rm, rb = self._rng['imu'], self._rng['mag'], self._rng['baro']
-        sa, sg = self._sigma_accel, self._sigma_gyro
-        # specific force in the body (REP-145: +g up at rest), gyro: body rates; FRD for PX4
-        ax, ay, az = flu_to_frd(*mat_t_vec(r, (v.ax, v.ay, v.az + g)))
-        gx, gy, gz = flu_to_frd(*body_rates_from_euler(v.roll, v.pitch, v.roll_rate,
-                                                       v.pitch_rate, v.yaw_rate))
+        rm, rb = self._rng['mag'], self._rng['baro']
+        # specific force in the body (REP-145: +g up at rest) and body rates, measured by the
+        # simulator's IMU model; FRD for PX4
+        f, w_b = self.imu.sample((v.ax, v.ay, v.az), r, body_rates_from_euler(
+            v.roll, v.pitch, v.roll_rate, v.pitch_rate, v.yaw_rate))
+        ax, ay, az = flu_to_frd(*f)
+        gx, gy, gz = flu_to_frd(*w_b)
         fields = FIELDS_ACCEL | FIELDS_GYRO
         if self._due_now('mag', t):
             bx, by, bz = flu_to_frd(*mat_t_vec(r, self._mag_enu))
@@ -380,10 +376,8 @@ class Px4Hil:
             fields |= FIELDS_BARO
         mx, my, mz = self._mag_frd
         pa, alt, temp = self._baro
-        self.mav.hil_sensor_send(t_us, ax + ri.gauss(0.0, sa), ay + ri.gauss(0.0, sa),
-                                 az + ri.gauss(0.0, sa), gx + ri.gauss(0.0, sg),
-                                 gy + ri.gauss(0.0, sg), gz + ri.gauss(0.0, sg), mx, my, mz,
-                                 pa, 0.0, alt, temp, fields, 0)
+        self.mav.hil_sensor_send(t_us, ax, ay, az, gx, gy, gz, mx, my, mz, pa, 0.0, alt, temp,
+                                 fields, 0)
         self.counters['messages_tx'] += 1
         if self._due_now('gps', t):
             self._send_gps(t_us)

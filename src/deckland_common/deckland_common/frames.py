@@ -92,14 +92,6 @@ def quaternion_to_euler(w: float, x: float, y: float, z: float) -> Vec3:
     return roll, pitch, yaw
 
 
-def body_rates_from_euler(roll_rad: float, pitch_rad: float, droll: float, dpitch: float,
-                          dyaw: float) -> Vec3:
-    """Z-Y-X Euler rates → body angular rates (p, q, r), FLU: ω = W(φ, θ) (φ̇, θ̇, ψ̇)."""
-    sr, cr = math.sin(roll_rad), math.cos(roll_rad)
-    sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
-    return (droll - sp * dyaw, cr * dpitch + sr * cp * dyaw, -sr * dpitch + cr * cp * dyaw)
-
-
 def wrap_pi(angle_rad: float) -> float:
     """Wrap an angle to [−π, π)."""
     return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
