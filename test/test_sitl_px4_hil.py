@@ -188,6 +188,7 @@ class Lockstep:
 
 @SITL[0]
 @SITL[1]
+@pytest.mark.ros
 def test_px4_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_context):
     from deckland_common.frames import euler_to_quaternion
     from geometry_msgs.msg import QuaternionStamped, WrenchStamped

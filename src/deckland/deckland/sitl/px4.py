@@ -22,6 +22,7 @@ import socket
 import subprocess
 import tempfile
 import time
+import weakref
 
 #: airframes used here (PX4 v1.16 ROMFS): SIH quadrotor, built-in physics; Iris for an
 #: external simulator over the Simulator MAVLink API (TCP 4560 + instance)
@@ -30,6 +31,14 @@ NONE_IRIS = (10016, 'none_iris')
 MAX_INSTANCE = 9                  # PX4's port scheme: remote 14540 + i only up to 9
 
 _REPO_ROOT = pathlib.Path(__file__).resolve().parents[4]
+
+
+def _cleanup(pid: int, workdir: str) -> None:
+    """Last resort at interpreter exit (a Px4Sitl never stopped): kill the group, remove the
+    directory."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(pid, signal.SIGKILL)
+    shutil.rmtree(workdir, ignore_errors=True)
 
 
 class Px4NotFoundError(RuntimeError):
@@ -228,11 +237,17 @@ class Px4Sitl:
         cmd = [str(bindir / 'px4'), '-d', '-i', str(self.instance), str(self.root / 'etc')]
         if self.nice:
             cmd = ['nice', '-n', str(self.nice), *cmd]
+        setpriv = shutil.which('setpriv')
+        if setpriv:
+            # SIGKILL to PX4 when the thread that started it dies (a killed test run must not
+            # leave PX4 holding its instance's ports; util-linux setpriv, PR_SET_PDEATHSIG)
+            cmd = [setpriv, '--pdeathsig', 'KILL', '--', *cmd]
         self._log = open(self.log_path, 'wb')  # noqa: SIM115 (closed in stop())
         self.started_s = time.monotonic()
         self.proc = subprocess.Popen(cmd, cwd=rootfs, env=env, stdin=subprocess.DEVNULL,
                                      stdout=self._log, stderr=subprocess.STDOUT,
                                      start_new_session=True)
+        self._finalizer = weakref.finalize(self, _cleanup, self.proc.pid, str(self.workdir))
 
     def wait_for_log(self, pattern: str, timeout_s: float) -> float:
         """Seconds from the spawn until ``pattern`` (a regex) appears in PX4's output;
@@ -267,6 +282,9 @@ class Px4Sitl:
         working directory; the ULog files are copied to ``keep_log_dir`` first. Safe to call
         more than once."""
         proc, self.proc = self.proc, None
+        fin = getattr(self, '_finalizer', None)
+        if fin is not None:
+            fin.detach()
         if proc is not None:
             for sig, wait_s in ((signal.SIGINT, 2.0), (signal.SIGTERM, 2.0),
                                 (signal.SIGKILL, 2.0)):
