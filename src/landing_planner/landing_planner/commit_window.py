@@ -110,7 +110,8 @@ class CommitWindow:
     close_s: float = math.nan     # last good commit time scanned (the run may go on)
     contact_s: float = math.nan   # contact time of a commit at open_s
     normal_speed_mps: float = math.nan      # predicted relative normal speed there
-    normal_speed_hi_mps: float = math.nan   # its upper bound at the confidence
+    normal_speed_hi_mps: float = math.nan   # its bound at the confidence, over the contact
+    #                                         time's uncertainty and the settling after it
     tilt_hi_rad: float = math.nan           # the relative tilt's bound (NaN: not checked)
     now_contact_s: float = math.nan         # a commit now, whether it is good or not:
     now_speed_mps: float = math.nan         # its contact time, predicted speed and bound
@@ -287,14 +288,14 @@ def _assess(mc: int, height_m: float, c: float, dt: float, rel: list[float],
     s_h = math.sqrt(_quad(wt, cov, n1))
     d_m = z * s_h / speed / dt             # contact-time uncertainty, sub-grid units
     lo_m, hi_m = max(tm - d_m, float(mc)), tm + d_m + settle_m
-    if hi_m > m_end:
-        return False, tm, lo_m, hi_m, speed, speed + z * s_speed
-    ok = speed + z * s_speed <= p.max_normal_speed_mps and speed >= p.min_normal_speed_mps
+    bound = speed + z * s_speed          # the bound over the whole span: what is checked
     m = math.ceil(lo_m)
-    while ok and m <= hi_m:
-        ok = rel[m] + z * sig[m] <= p.max_normal_speed_mps
+    while m <= min(hi_m, float(m_end)):
+        bound = max(bound, rel[m] + z * sig[m])
         m += 1
-    return ok, tm, lo_m, hi_m, speed, speed + z * s_speed
+    ok = (hi_m <= m_end and bound <= p.max_normal_speed_mps
+          and speed >= p.min_normal_speed_mps)
+    return ok, tm, lo_m, hi_m, speed, bound
 
 
 def _tilt_bound(deck: DeckSnapshot, t0_s: float, lo_m: float, hi_m: float, dt: float,
@@ -385,7 +386,7 @@ class PredictionMonitor:
             ch = chans[i]
             if ch.restarts != snap.restarts:
                 return self._break(t_s, f'restart:{i}')
-            s = ch.params.rate_halfwidth
+            s = ch.params.reference_halfwidth
             dt = snap.dt_s
             while self._next[i] <= ch.newest_index:
                 k = self._next[i]

@@ -29,7 +29,8 @@ class ChannelParams:
     #                                triangle's 6.7 s period, > sea-state peak periods 6-7 s)
     forgetting: float = 0.997      # RLS forgetting per grid step: memory 0.2/0.003 ≈ 67 s
     horizon_s: float = 3.0         # longest prediction (s)
-    rate_halfwidth: int = 1        # central-difference stencil of the rate, grid steps
+    reference_halfwidth: int = 1   # the realised rate the predicted one is scored against:
+    #                                central difference over ± this many grid steps
     calibration_memory_s: float = 40.0   # memory of the measured error statistics (s)
     warmup_updates: int = 40       # model updates before its paths are scored (the first
     #                                fits of an AR(40) are poor for ~8 s, docs/predictor.md)
@@ -49,7 +50,7 @@ class ChannelParams:
                      'gate_sigma', 'gate_floor', 'prior_sigma', 'rls_p0', 'rls_trace_max'):
             chk.positive(f'{o}.{name}', getattr(self, name))
         chk.integer_at_least(f'{o}.ar_order', self.ar_order, 1)
-        chk.integer_at_least(f'{o}.rate_halfwidth', self.rate_halfwidth, 1)
+        chk.integer_at_least(f'{o}.reference_halfwidth', self.reference_halfwidth, 1)
         chk.integer_at_least(f'{o}.min_calibration', self.min_calibration, 1)
         chk.integer_at_least(f'{o}.warmup_updates', self.warmup_updates, 0)
         chk.integer_at_least(f'{o}.gate_restart', self.gate_restart, 1)
@@ -150,7 +151,7 @@ class ChannelPredictor:
         self._dt = p.model_dt_s
         self._order = p.ar_order
         self._n = round(p.horizon_s / p.model_dt_s)
-        self._s = p.rate_halfwidth
+        self._s = p.reference_halfwidth
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'outlier': 0}
         self.restarts = 0
         self.rebases = 0
@@ -298,7 +299,7 @@ class ChannelPredictor:
         self._k_last = k
         self.cells += 1
         hist = len(self._y)
-        if hist > max(self._order + 1, 2 * s + 1) + 1:
+        if hist > max(self._order + 1, 2 * s + 1, 3) + 1:
             del self._y[0]
         if hist >= 2:
             d = y - self._y[-2]
@@ -308,7 +309,7 @@ class ChannelPredictor:
             if len(self._d) > self._order:
                 self._d.pop()
         self._score(k)
-        if len(self._d) >= self._order and len(self._y) >= s + 1:
+        if len(self._d) >= self._order and len(self._y) >= 3:
             self._cur = self._make_path(k)
             if self._updates >= self.params.warmup_updates:
                 self._paths.append(self._cur)
@@ -350,8 +351,11 @@ class ChannelPredictor:
             self._trace = sum([P[i][i] for i in range(n)])
 
     def _make_path(self, k: int) -> _Path:
-        """Iterate the increment model from grid index k over n + s steps."""
-        n_steps = self._n + self._s
+        """Iterate the increment model from grid index k over n + 2 steps; the rate is the
+        fourth-order central difference (z₋₂ − 8z₋₁ + 8z₁ − z₂)/12Δ of the path (history
+        before the origin), which keeps 99.6 % of a 2.3 s tone where the three-point one
+        keeps 95 %."""
+        n_steps = self._n + max(self._s, 2)
         th = self._theta
         d = self._d[: self._order]
         z = self._y[-1]
@@ -362,14 +366,15 @@ class ChannelPredictor:
             d.pop()
             z += nxt
             values[i] = z
-        s = self._s
-        inv = 1.0 / (2.0 * s * self._dt)
         hist = self._y
-        rates = [0.0] * (self._n + 1)
-        for i in range(self._n + 1):
-            hi = values[i + s - 1]
-            lo = values[i - s - 1] if i - s >= 1 else hist[len(hist) - 1 + i - s]
-            rates[i] = (hi - lo) * inv
+        last = len(hist) - 1
+
+        def at(i: int) -> float:
+            return values[i - 1] if i >= 1 else hist[last + i]
+
+        inv = 1.0 / (12.0 * self._dt)
+        rates = [(at(i - 2) - 8.0 * at(i - 1) + 8.0 * at(i + 1) - at(i + 2)) * inv
+                 for i in range(self._n + 1)]
         return _Path(k, values, rates)
 
     def _predict_series(self, t_s: float) -> float:
