@@ -142,8 +142,13 @@ def _grid_weights(path: PathSnapshot, t_s: float) -> tuple[int, float]:
 
 
 def _quad(w: list[float], cov: tuple[float, ...], n1: int) -> float:
-    """wᵀ C w over the entries of w above 1e-6 (C row-major n1×n1)."""
-    idx = [i for i in range(n1) if abs(w[i]) > 1e-6]
+    """wᵀ C w (C row-major n1×n1) over the entries of w above 1 % of its largest: the follow
+    lag's weights decay exponentially; the dropped ones change σ by well under 1 %."""
+    big = 0.0
+    for x in w:
+        big = max(big, abs(x))
+    cut = 1e-2 * big
+    idx = [i for i in range(n1) if abs(w[i]) > cut]
     acc = 0.0
     for i in idx:
         wi = w[i]

@@ -159,8 +159,8 @@ class ChannelPredictor:
         n1 = self._n + 1
         self._theta = [0.0] * self._order
         self._theta[0] = 1.0                 # prior: the last increment persists
-        self._P = [[p.rls_p0 if i == j else 0.0 for j in range(self._order)]
-                   for i in range(self._order)]
+        self._P = [p.rls_p0 if i == j else 0.0 for i in range(self._order)
+                   for j in range(i, self._order)]          # upper triangle, flat
         self._trace = p.rls_p0 * self._order
         self._updates = 0
         self._msz = [0.0] * n1               # mean-square value error per horizon
@@ -171,6 +171,7 @@ class ChannelPredictor:
         self._epoch = 0
         self._epoch_seen = False
         self.offset = 0.0                    # current datum − spliced series
+        self._gate = p.gate_floor
         self._clear_history()
 
     # -- history ---------------------------------------------------------------------------
@@ -247,15 +248,12 @@ class ChannelPredictor:
         if self._t_in > -math.inf and t_s - self._t_in > self.params.max_gap_s:
             self.restart()
         pred = self._predict_series(t_s)
-        if math.isfinite(pred):
-            h = t_s - self.origin_s
-            gate = max(self.params.gate_floor, self.params.gate_sigma * self._sigma_z(h))
-            if abs(y - pred) > gate:
-                self.rejected['outlier'] += 1
-                self._outliers += 1
-                if self._outliers >= self.params.gate_restart:
-                    self.restart()
-                return False
+        if math.isfinite(pred) and abs(y - pred) > self._gate:
+            self.rejected['outlier'] += 1
+            self._outliers += 1
+            if self._outliers >= self.params.gate_restart:
+                self.restart()
+            return False
         self._outliers = 0
         self._t_in = t_s
         k = math.floor(t_s / self._dt)
@@ -310,6 +308,7 @@ class ChannelPredictor:
                 self._d.pop()
         self._score(k)
         if len(self._d) >= self._order and len(self._y) >= 3:
+            self._update_gate()
             self._cur = self._make_path(k)
             if self._updates >= self.params.warmup_updates:
                 self._paths.append(self._cur)
@@ -318,37 +317,49 @@ class ChannelPredictor:
     def _rls(self, target: float) -> None:
         """θ ← θ + g e, P ← (P − g (Pφ)ᵀ)/λ with g = Pφ/(λ + φᵀPφ) (φ: the last p increments).
 
-        Forgetting is skipped while trace(P)/p would exceed ``rls_trace_max`` (directions the
-        signal does not excite would otherwise grow as λ⁻ᵏ); P is re-symmetrised every 64
-        updates."""
+        P is kept as its upper triangle, row-major and flat (the update is symmetric, so half
+        of it is enough). Forgetting is skipped while trace(P)/p would exceed
+        ``rls_trace_max`` (directions the signal does not excite would otherwise grow as
+        λ⁻ᵏ)."""
         phi = self._d
         P = self._P
         th = self._theta
+        n = self._order
         lam = self.params.forgetting
-        pphi = [sum([a * b for a, b in zip(row, phi, strict=True)]) for row in P]
-        den = lam + sum([a * b for a, b in zip(phi, pphi, strict=True)])
-        err = target - sum([a * b for a, b in zip(th, phi, strict=True)])
+        pphi = [0.0] * n
+        k = 0
+        for i in range(n):                  # Pφ from the upper triangle
+            pi = phi[i]
+            acc = pphi[i] + P[k] * pi
+            k += 1
+            for j in range(i + 1, n):
+                pij = P[k]
+                acc += pij * phi[j]
+                pphi[j] += pij * pi
+                k += 1
+            pphi[i] = acc
+        den = lam
+        err = target
+        for i in range(n):
+            den += phi[i] * pphi[i]
+            err -= th[i] * phi[i]
         if not (den > 0.0 and math.isfinite(den + err)):
             return
         self.residual_ms += 0.02 * (err * err - self.residual_ms)
         inv = 1.0 / den
-        g = [a * inv for a in pphi]
-        n = self._order
-        trace = self._trace - sum([a * b for a, b in zip(g, pphi, strict=True)])
+        trace = self._trace
+        for i in range(n):
+            trace -= pphi[i] * pphi[i] * inv
         scale = 1.0 / lam if trace / (n * lam) <= self.params.rls_trace_max else 1.0
         self._trace = trace * scale
+        k = 0
         for i in range(n):
-            gi = g[i]
+            gi = pphi[i] * inv
             th[i] += gi * err
-            P[i] = [(a - gi * b) * scale for a, b in zip(P[i], pphi, strict=True)]
+            for j in range(i, n):
+                P[k] = (P[k] - gi * pphi[j]) * scale
+                k += 1
         self._updates += 1
-        if self._updates % 64 == 0:
-            for i in range(n):
-                for j in range(i + 1, n):
-                    m = 0.5 * (P[i][j] + P[j][i])
-                    P[i][j] = m
-                    P[j][i] = m
-            self._trace = sum([P[i][i] for i in range(n)])
 
     def _make_path(self, k: int) -> _Path:
         """Iterate the increment model from grid index k over n + 2 steps; the rate is the
@@ -360,8 +371,11 @@ class ChannelPredictor:
         d = self._d[: self._order]
         z = self._y[-1]
         values = [0.0] * n_steps
+        order = self._order
         for i in range(n_steps):
-            nxt = sum([a * b for a, b in zip(th, d, strict=True)])
+            nxt = 0.0
+            for j in range(order):
+                nxt += th[j] * d[j]
             d.insert(0, nxt)
             d.pop()
             z += nxt
@@ -431,12 +445,12 @@ class ChannelPredictor:
             keep.append(path)
         self._paths = keep
 
-    def _sigma_z(self, h_s: float) -> float:
-        """σ of a value at horizon h_s (the prior before calibration)."""
-        if self._count_z < 1:
-            return self.params.prior_sigma
-        j = min(max(math.ceil(h_s / self._dt), 1), self._n)
-        return math.sqrt(self._msz[j])
+    def _update_gate(self) -> None:
+        """Outlier gate of the samples until the next grid value (at most two steps past the
+        origin): gate_sigma × the measured σ two steps ahead, at least gate_floor."""
+        p = self.params
+        sigma = math.sqrt(self._msz[2]) if self._count_z > 0 else p.prior_sigma
+        self._gate = max(p.gate_floor, p.gate_sigma * sigma)
 
     # -- output ----------------------------------------------------------------------------
     def _sigmas(self) -> tuple[list[float], list[float]]:
