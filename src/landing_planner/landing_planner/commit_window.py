@@ -1,14 +1,13 @@
 """When to commit the final descent, and when the deck broke its prediction (pure).
 
-:func:`find_window` takes the predicted deck (a :class:`DeckSnapshot`) and the vehicle's
-planned final descent (:class:`DescentPlan`: height above the pad, relative closing speed,
-how closely the vehicle follows the deck) and scans commit times: for each it flies the
-descent against the predicted deck velocity, finds the contact time, and accepts the commit
-when the contact's relative normal speed and relative tilt stay within limits, with the
-stated confidence, around the contact and for ``settle_s`` after it. The uncertainty comes
-from the predictor's measured rate-error covariance, so every bound is a linear functional of
-the predicted deck velocity path. :class:`PredictionMonitor` watches a committed prediction
-and reports when the deck leaves its interval (the planner's go-around). docs/predictor.md.
+:func:`find_window` scans commit times against the predicted deck (a :class:`DeckSnapshot`):
+for each it flies the planner's final descent (:class:`DescentPlan`: height, relative closing
+speed, how the vehicle follows the deck) against the predicted deck velocity, finds the
+contact, and accepts the commit when the contact's relative normal speed and relative tilt
+stay within limits at the stated confidence, around the contact and for ``settle_s`` after.
+Every bound is a linear functional of the predicted rate path under its measured error
+covariance. :class:`PredictionMonitor` watches a committed prediction and reports when the
+deck leaves its interval (the planner's go-around). docs/predictor.md.
 """
 
 from __future__ import annotations
