@@ -30,8 +30,8 @@ $(STAMP): $(PY) requirements.txt $(PKGS) $(wildcard src/*/package.xml)
 #     (the whole value is replaced, so a second run changes nothing);
 #  4. cmake and a C/C++ compiler: the machine's cmake, or PyPI's (< 4) in the venv if it has none.
 # Rebuilt only when a message, CMakeLists.txt, package.xml or the venv's packages changed; the
-# files of the previous install (its install manifest) are removed first, so a deleted message
-# leaves nothing behind. The build log is build/deckland_interfaces/build.log.
+# previous install (its install manifest and package directories) is removed first, so a
+# deleted message leaves nothing behind. The build log is build/deckland_interfaces/build.log.
 IFACE := src/deckland_interfaces
 IFACE_BUILD := build/deckland_interfaces
 IFACE_STAMP := $(VENV)/.deckland-interfaces-built
@@ -52,6 +52,8 @@ $(IFACE_STAMP): $(STAMP) $(IFACE_SRC)
 	sed -i -E "s|(INTERFACE_INCLUDE_DIRECTORIES \")[^\"]*include/python3[^\"]*\"|\1$$pyinc;$$npinc\"|" \
 		$(VENV)/share/*/cmake/*__rosidl_generator_pyExport.cmake
 	@if [ -f $(IFACE_MANIFEST) ]; then xargs -d '\n' rm -f < $(IFACE_MANIFEST); fi
+	@rm -rf $(VENV)/lib/python3*/site-packages/deckland_interfaces* \
+		$(VENV)/include/deckland_interfaces $(VENV)/share/deckland_interfaces
 	@rm -rf $(IFACE_BUILD) $(IFACE_STAMP) && mkdir -p $(IFACE_BUILD)
 	@echo "building deckland_interfaces (log: $(IFACE_BUILD)/build.log)"
 	@( $(ROS_BUILD_ENV) cmake -S $(IFACE) -B $(IFACE_BUILD) -DCMAKE_INSTALL_PREFIX=$(VENV_ABS) \
@@ -60,7 +62,7 @@ $(IFACE_STAMP): $(STAMP) $(IFACE_SRC)
 	&& $(ROS_BUILD_ENV) cmake --install $(IFACE_BUILD) ) > $(IFACE_BUILD)/build.log 2>&1 \
 	|| { tail -n 40 $(IFACE_BUILD)/build.log; exit 1; }
 	@cp $(IFACE_BUILD)/install_manifest.txt $(IFACE_MANIFEST)
-	@$(PY) -c 'import deckland_interfaces.msg'
+	@$(PY) -c 'import deckland_interfaces.msg as m; assert m.__file__, "not built"'
 	touch $(IFACE_STAMP)
 
 setup: $(STAMP) $(IFACE_STAMP)
