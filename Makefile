@@ -29,7 +29,7 @@ $(STAMP): $(PY) requirements.txt $(PKGS) $(wildcard src/*/package.xml)
 #     numpy include directories (/opt/python/cp311-cp311/...): rewritten to this interpreter's
 #     (the whole value is replaced, so a second run changes nothing);
 #  4. cmake and a C/C++ compiler: the machine's cmake, or PyPI's (< 4) in the venv if it has none.
-# Rebuilt only when a message, CMakeLists.txt, package.xml or the venv's packages changed; the
+# Rebuilt only when a message, CMakeLists.txt, package.xml or requirements.txt changed; the
 # previous install (its install manifest and package directories) is removed first, so a
 # deleted message leaves nothing behind. The build log is build/deckland_interfaces/build.log.
 IFACE := src/deckland_interfaces
@@ -42,7 +42,7 @@ VENV_ABS = $(abspath $(VENV))
 ROS_BUILD_ENV = AMENT_PREFIX_PATH=$(VENV_ABS) CMAKE_PREFIX_PATH=$(VENV_ABS) \
 	PATH=$(VENV_ABS)/bin:$$PATH
 
-$(IFACE_STAMP): $(STAMP) $(IFACE_SRC)
+$(IFACE_STAMP): $(IFACE_SRC) requirements.txt | $(STAMP)
 	@command -v cmake >/dev/null || test -x $(VENV)/bin/cmake \
 		|| $(PY) -m pip install --quiet 'cmake>=3.22,<4'
 	@pyinc=$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["include"])'); \
