@@ -1,9 +1,12 @@
-"""deck_simulator.px4_emulator over an in-memory link: PX4 offboard rules and failsafes."""
+"""deck_simulator.px4_emulator over an in-memory link: PX4 offboard rules and failsafes (the
+emulator without a world runs its autopilot's mode logic itself)."""
 
 import math
 import random
 
-from deck_simulator.px4_emulator import EmulatorParams, MemoryLink, Px4Emulator
+from deck_simulator.autopilot import AutopilotParams
+from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
+from deck_simulator.transport import MemoryLink
 from mavlink_bridge.conversions import ThrustCalibration, set_attitude_target_fields
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
@@ -95,12 +98,11 @@ def test_offboard_needs_a_second_of_setpoints():
     c.command(176, 1.0, 6.0)
     c.emu.update(t)
     assert c.emu.acks[-1] == (176, mavlink.MAV_RESULT_ACCEPTED)
-    assert c.emu.mode == 'OFFBOARD' and c.emu.armed
-    cmd = c.emu.command()
-    assert cmd.kind == 'offboard'
-    assert (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad) == pytest.approx((0.1, 0.05, 1.0),
-                                                                       abs=1e-6)
-    assert cmd.thrust_n == pytest.approx(20.0, abs=1e-4)
+    assert c.emu.mode == 'OFFBOARD' and c.emu.armed and c.emu.kind == 'offboard'
+    sp = c.emu.setpoint
+    assert (sp.roll_rad, sp.pitch_rad, sp.yaw_rad) == pytest.approx((0.1, 0.05, 1.0),
+                                                                    abs=1e-6)
+    assert sp.thrust_n == pytest.approx(20.0, abs=1e-4)
 
 
 def test_slow_stream_never_warms_up():
@@ -122,24 +124,22 @@ def test_offboard_loss_failsafe_lands_after_com_of_loss_t():
     last = t
     t += 0.5
     c.emu.update(t)                                               # 0.5 s silence: hold last
-    assert c.emu.mode == 'OFFBOARD' and c.emu.command().kind == 'offboard'
+    assert c.emu.mode == 'OFFBOARD' and c.emu.kind == 'offboard'
     t = last + 1.05
     c.emu.update(t)
     assert c.emu.mode == 'AUTO.LAND' and c.emu.failsafe_active
-    c.state(t, vz=0.0)
-    cmd = c.emu.command()
-    assert cmd.kind == 'failsafe_land' and cmd.roll_rad == 0.0 and cmd.pitch_rad == 0.0
-    weight = 2.71 * 9.81
-    assert cmd.thrust_n < weight                                  # descending from rest
-    c.state(t, vz=-0.7)
-    assert c.emu.command().thrust_n == pytest.approx(weight)      # at land speed: hover thrust
+    assert c.emu.kind == 'failsafe_land' and c.emu.autopilot.failsafes == 1
     # setpoints coming back do not re-enter OFFBOARD by themselves
     t = stream(c, t, t + 2.0)
-    assert c.emu.mode == 'AUTO.LAND'
+    assert c.emu.mode == 'AUTO.LAND' and c.emu.failsafe_active
+    # the companion's request does (and ends the failsafe)
+    c.command(176, 1.0, 6.0)
+    c.emu.update(t)
+    assert c.emu.mode == 'OFFBOARD' and not c.emu.failsafe_active
 
 
 def test_disarm_rules():
-    c = Companion(EmulatorParams(disarm_preflight_s=0.0))
+    c = Companion(EmulatorParams(autopilot=AutopilotParams(disarm_preflight_s=0.0)))
     c.state(0.0, landed=False)
     c.command(400, 1.0)
     c.emu.update(0.0)
@@ -148,7 +148,7 @@ def test_disarm_rules():
     assert c.emu.armed and c.emu.acks[-1] == (400, mavlink.MAV_RESULT_DENIED)
     c.command(400, 0.0, 21196.0)                                  # forced
     c.emu.update(0.2)
-    assert not c.emu.armed and c.emu.command().kind == 'idle'
+    assert not c.emu.armed and c.emu.kind == 'idle'
     # auto-disarm 2 s after touchdown (COM_DISARM_LAND)
     c.command(400, 1.0)
     c.emu.update(0.3)
@@ -191,10 +191,9 @@ def test_emulator_cost():
         t[0] += 0.0025
         c.emu.update(t[0])
         c.state(t[0])
-        c.emu.command()
         c.link.b.inbox.clear()
 
     n = 2000
     us = timeit.timeit(one, number=n) / n * 1e6
-    print(f'px4 emulator: {us:.1f} us per 400 Hz step (update + publish_state + command)')
+    print(f'px4 emulator: {us:.1f} us per 400 Hz step (update + publish_state)')
     assert us < 2000.0

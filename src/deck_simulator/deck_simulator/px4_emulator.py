@@ -1,45 +1,22 @@
-"""A PX4-like autopilot for the simulator: the MAVLink side the bridge talks to (no rclpy).
+"""A PX4-like MAVLink endpoint for the simulator: the autopilot's wire side (no rclpy).
 
-:class:`Px4Emulator` speaks MAVLink 2 (pymavlink's ``common`` dialect, encoder and decoder used
-directly, no ``mavutil`` global state) over a byte transport: a loopback UDP socket by default
-(:class:`UdpTransport`, bound to 127.0.0.1 like PX4 SITL, sending to the companion's port and
-answering whoever last sent it a valid packet) or an in-memory pair (:class:`MemoryLink`).
-
-It is stepped with the simulator's time ``t_s`` (never the wall clock):
-
-``update(t_s)``
-    read every pending packet and act on it: COMMAND_LONG (SET_MESSAGE_INTERVAL,
-    COMPONENT_ARM_DISARM, DO_SET_MODE, all answered with COMMAND_ACK), TIMESYNC requests
-    (answered at once like PX4: ``tc1`` = emulator time in ns, ``ts1`` echoed), SET_ATTITUDE_TARGET
-    (decoded back to ENU/FLU angles and newtons with the bridge's own
-    :class:`~mavlink_bridge.conversions.ThrustCalibration`), HEARTBEAT; then run the mode logic:
-    OFFBOARD is accepted only after setpoints have streamed > 1 s at > 2 Hz; if they stop for
-    ``offboard_loss_timeout_s`` (PX4 ``COM_OF_LOSS_T``, 1.0 s) the failsafe switches to
-    AUTO.LAND (or AUTO.LOITER, or AUTO.RTL) and :attr:`failsafe_active` is set; auto-disarm
-    after landing (``COM_DISARM_LAND``) or when never taking off (``COM_DISARM_PRFLT``).
-``publish_state(t_s, ...)``
-    the simulator's truth/sensor values; streams HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
-    DISTANCE_SENSOR (cm, orientation 25), HIGHRES_IMU / SCALED_IMU and EXTENDED_SYS_STATE at the
-    rates the companion asked for.
-``command()``
-    what the vehicle should fly now, a :class:`VehicleCommand` named tuple
-    ``(kind, roll_rad, pitch_rad, yaw_rad, thrust_n)`` with kind ``'idle'`` (disarmed),
-    ``'offboard'`` (the last setpoint), ``'hold'`` (level, vertical speed 0), ``'land'`` or
-    ``'failsafe_land'`` (level, descend at ``land_speed_mps``), ``'failsafe_return'`` (AUTO.RTL:
-    fly to :attr:`home_m`, where OFFBOARD was engaged, then land there — the simulator node's
-    ``AutopilotEmulation`` flies it; the thrust here only holds the vertical speed at 0).
-    Hold/land thrust comes from a simple vertical-speed loop on the last published state,
-    tilt-compensated.
+:class:`Px4Emulator` speaks MAVLink 2 (pymavlink's ``common`` dialect, no ``mavutil`` global
+state) over a byte transport (:mod:`deck_simulator.transport`) as PX4 presents itself, and
+hands what it decodes to an :class:`~deck_simulator.autopilot.EmulatedAutopilot` (modes,
+offboard acceptance, failsafes; the world flies it): ``update(t_s)`` reads the wire
+(SET_ATTITUDE_TARGET, COMMAND_LONG answered with COMMAND_ACK, TIMESYNC answered at once,
+HEARTBEAT); ``publish_state(t_s, ...)`` streams HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
+DISTANCE_SENSOR, HIGHRES_IMU / SCALED_IMU and EXTENDED_SYS_STATE at the requested rates.
+Stepped with the simulator's time, never the wall clock.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-import socket
-from typing import NamedTuple
 
 from deckland_common.frames import enu_to_ned, euler_enu_flu_to_ned_frd, flu_to_frd
+from deckland_common.validate import in_range, integer_at_least, require
 from mavlink_bridge.conversions import (
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
@@ -53,6 +30,11 @@ from mavlink_bridge.conversions import (
 from mavlink_bridge.signing import verify_signature_first
 from pymavlink.dialects.v20 import common as mavlink
 
+from deck_simulator import autopilot as ap_modes
+from deck_simulator.autopilot import AttitudeSetpoint, AutopilotParams, EmulatedAutopilot
+from deck_simulator.transport import MemoryLink, UdpTransport
+from deck_simulator.vehicle import VehicleParams
+
 Vec3 = tuple[float, float, float]
 
 MODE_POSCTL = (3, 0)
@@ -61,7 +43,14 @@ MODE_OFFBOARD = (6, 0)
 MODE_AUTO_LOITER = (4, 3)
 MODE_AUTO_RTL = (4, 5)
 MODE_AUTO_LAND = (4, 6)
-_ACCEPTED_MODES = (MODE_POSCTL, MODE_ALTCTL, MODE_OFFBOARD, MODE_AUTO_LOITER, MODE_AUTO_LAND)
+#: PX4 (main, sub) custom mode of each generic autopilot mode
+PX4_MODES = {ap_modes.POSITION: MODE_POSCTL, ap_modes.ALTITUDE: MODE_ALTCTL,
+             ap_modes.OFFBOARD: MODE_OFFBOARD, ap_modes.HOLD: MODE_AUTO_LOITER,
+             ap_modes.RETURN: MODE_AUTO_RTL, ap_modes.LAND: MODE_AUTO_LAND}
+#: the modes a companion may ask for with DO_SET_MODE
+_ACCEPTED_MODES = {MODE_POSCTL: ap_modes.POSITION, MODE_ALTCTL: ap_modes.ALTITUDE,
+                   MODE_OFFBOARD: ap_modes.OFFBOARD, MODE_AUTO_LOITER: ap_modes.HOLD,
+                   MODE_AUTO_LAND: ap_modes.LAND}
 FORCE_DISARM_MAGIC = 21196
 
 #: message id → default stream interval (s); ≤ 0 = off. SET_MESSAGE_INTERVAL changes them.
@@ -76,19 +65,15 @@ DEFAULT_INTERVALS_S = {
 }
 
 
-class VehicleCommand(NamedTuple):
-    """What the simulated vehicle should do: ``world.set_command(roll, pitch, yaw, thrust)``."""
-
-    kind: str        # 'idle' | 'offboard' | 'hold' | 'land' | 'failsafe_land' | 'failsafe_return'
-    roll_rad: float
-    pitch_rad: float
-    yaw_rad: float
-    thrust_n: float
+def vehicle_thrust_calibration(vehicle: VehicleParams) -> ThrustCalibration:
+    """Normalised thrust as the simulated vehicle's motors give it: hover at 1 / (T/W)."""
+    return ThrustCalibration(mass_kg=vehicle.mass_kg, gravity_mps2=vehicle.gravity_mps2,
+                             hover_thrust_norm=1.0 / vehicle.thrust_to_weight)
 
 
 @dataclass(frozen=True, slots=True)
 class EmulatorParams:
-    """PX4-like behaviour; names in comments are the PX4 parameters they stand for."""
+    """The MAVLink side; the autopilot's behaviour (PX4 parameters) is ``autopilot``."""
 
     system_id: int = 1
     component_id: int = 1
@@ -96,114 +81,22 @@ class EmulatorParams:
     bind_port: int = 14580                 # PX4 SITL's onboard link port (0 = any free port)
     remote_host: str = '127.0.0.1'
     remote_port: int = 14540               # where the companion (the bridge) listens
-    offboard_loss_timeout_s: float = 1.0   # COM_OF_LOSS_T
-    offboard_loss_action: str = 'land'     # COM_OBL_RC_ACT: 'land' | 'hold' | 'return' (RTL)
-    offboard_warmup_s: float = 1.0         # setpoints needed before OFFBOARD is accepted
-    max_setpoint_gap_s: float = 0.5        # gaps above this restart the warm-up (> 2 Hz)
-    land_speed_mps: float = 0.7            # MPC_LAND_SPEED
-    vz_gain_per_s: float = 2.0             # hold/land vertical speed loop gain
-    disarm_landed_s: float = 2.0           # COM_DISARM_LAND (<= 0: off)
-    disarm_preflight_s: float = 10.0       # COM_DISARM_PRFLT (<= 0: off)
     range_min_cm: int = 5                  # LidarLite v3
     range_max_cm: int = 4000
-    thrust: ThrustCalibration = field(default_factory=ThrustCalibration)
+    thrust: ThrustCalibration = field(
+        default_factory=lambda: vehicle_thrust_calibration(VehicleParams()))
+    autopilot: AutopilotParams = field(default_factory=AutopilotParams)
 
     def __post_init__(self) -> None:
-        for name in ('offboard_loss_timeout_s', 'offboard_warmup_s', 'max_setpoint_gap_s',
-                     'land_speed_mps', 'vz_gain_per_s'):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0.0:
-                raise ValueError(f'EmulatorParams.{name} = {v!r}: must be a finite number > 0')
-        for name in ('disarm_landed_s', 'disarm_preflight_s'):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f'EmulatorParams.{name} = {v!r}: must be finite')
-        if self.offboard_loss_action not in ('land', 'hold', 'return'):
-            raise ValueError(f'EmulatorParams.offboard_loss_action = '
-                             f"{self.offboard_loss_action!r}: must be 'land', 'hold' or "
-                             "'return'")
         for name in ('system_id', 'component_id'):
-            if not 1 <= getattr(self, name) <= 255:
-                raise ValueError(f'EmulatorParams.{name} = {getattr(self, name)!r}: '
-                                 'must be in [1, 255]')
+            in_range(f'EmulatorParams.{name}', getattr(self, name), 1, 255)
         for name in ('bind_port', 'remote_port'):
-            if not 0 <= getattr(self, name) <= 65535:
-                raise ValueError(f'EmulatorParams.{name} = {getattr(self, name)!r}: '
-                                 'must be a UDP port')
-        if not 0 < self.range_min_cm < self.range_max_cm < 65535:
-            raise ValueError(f'EmulatorParams.range_min_cm/range_max_cm = '
-                             f'{self.range_min_cm}/{self.range_max_cm}: need 0 < min < max')
-
-
-# --- transports ----------------------------------------------------------------------------
-
-class UdpTransport:
-    """Non-blocking UDP socket bound to ``bind``; sends to ``remote`` (updated by the emulator
-    to the source of the last *valid* MAVLink packet, as PX4 does)."""
-
-    def __init__(self, bind: tuple[str, int], remote: tuple[str, int]) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(bind)
-        self.sock.setblocking(False)
-        self.remote = remote
-        self.send_errors = 0
-
-    @property
-    def local_address(self) -> tuple[str, int]:
-        return self.sock.getsockname()
-
-    def send(self, data: bytes) -> None:
-        try:
-            self.sock.sendto(data, self.remote)
-        except OSError:
-            self.send_errors += 1  # nobody listening yet (ECONNREFUSED) and the like
-
-    def receive(self) -> list[tuple[bytes, object]]:
-        out = []
-        for _ in range(1000):
-            try:
-                data, addr = self.sock.recvfrom(65535)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                continue  # ICMP port unreachable reported on a later recv
-            out.append((data, addr))
-        return out
-
-    def set_peer(self, addr: object) -> None:
-        self.remote = addr
-
-    def close(self) -> None:
-        self.sock.close()
-
-
-class MemoryLink:
-    """Two in-memory endpoints ``a`` and ``b``: bytes sent on one are received on the other."""
-
-    class End:
-        def __init__(self) -> None:
-            self.inbox: list[bytes] = []
-            self.peer: MemoryLink.End | None = None
-
-        def send(self, data: bytes) -> None:
-            self.peer.inbox.append(bytes(data))
-
-        def write(self, data: bytes) -> None:  # pymavlink file-like writer
-            self.send(data)
-
-        def receive(self) -> list[tuple[bytes, object]]:
-            out, self.inbox = self.inbox, []
-            return [(d, None) for d in out]
-
-        def set_peer(self, addr: object) -> None:
-            pass
-
-        def close(self) -> None:
-            pass
-
-    def __init__(self) -> None:
-        self.a, self.b = MemoryLink.End(), MemoryLink.End()
-        self.a.peer, self.b.peer = self.b, self.a
+            in_range(f'EmulatorParams.{name}', getattr(self, name), 0, 65535)
+        integer_at_least('EmulatorParams.range_min_cm', self.range_min_cm, 1)
+        require(isinstance(self.range_max_cm, int)
+                and self.range_min_cm < self.range_max_cm < 65535,
+                'EmulatorParams.range_max_cm',
+                f'must be an integer in ({self.range_min_cm}, 65535)', self.range_max_cm)
 
 
 class _Writer:
@@ -216,12 +109,16 @@ class _Writer:
         self.transport.send(data)
 
 
-# --- the emulator --------------------------------------------------------------------------
-
 class Px4Emulator:
-    """PX4-like autopilot endpoint for the simulator (see the module docstring)."""
+    """PX4's MAVLink face of an autopilot (see the module docstring).
 
-    def __init__(self, params: EmulatorParams | None = None, transport=None) -> None:
+    ``autopilot`` None: the emulator makes its own from ``params.autopilot`` and runs its mode
+    logic in :meth:`update` (no world flies it: a MAVLink peer for the bridge's tests).
+    Otherwise the caller's world ticks the autopilot (:class:`deck_simulator.loop.SimulationLoop`).
+    """
+
+    def __init__(self, params: EmulatorParams | None = None, transport=None,
+                 autopilot: EmulatedAutopilot | None = None) -> None:
         self.params = params or EmulatorParams()
         p = self.params
         self.transport = transport if transport is not None else UdpTransport(
@@ -229,23 +126,17 @@ class Px4Emulator:
         self.mav = mavlink.MAVLink(_Writer(self.transport), srcSystem=p.system_id,
                                    srcComponent=p.component_id)
         self.mav.robust_parsing = True
+        self._drives_autopilot = autopilot is None
+        self.autopilot = autopilot if autopilot is not None else EmulatedAutopilot(p.autopilot)
         self.rejected: dict[str, int] = {'nan': 0, 'bad_data': 0, 'out_of_order': 0,
                                          'wrong_target': 0, 'unsupported_mask': 0,
                                          'bad_signature': 0}
         self.counters: dict[str, int] = {'setpoints_rx': 0, 'commands_rx': 0,
                                          'heartbeats_rx': 0, 'messages_tx': 0,
-                                         'failsafes': 0, 'timesync_rx': 0}
+                                         'timesync_rx': 0}
         self.intervals_s = dict(DEFAULT_INTERVALS_S)
         self._next_due = dict.fromkeys(self.intervals_s, -math.inf)
-        self.armed = False
-        self.main_mode, self.sub_mode = MODE_POSCTL
-        self.failsafe_active = False
-        #: (x, y) ENU where OFFBOARD was last engaged: the RTL target (None before)
-        self.home_m: tuple[float, float] | None = None
         self.acks: list[tuple[int, int]] = []   # (command, result) sent, for tests/diagnostics
-        self.setpoint: VehicleCommand | None = None
-        self.last_setpoint_s = -math.inf
-        self._stream_start_s = math.inf
         self.last_peer_heartbeat_s = -math.inf
         self._t_s = -math.inf
         self._t0_s: float | None = None
@@ -254,20 +145,44 @@ class Px4Emulator:
         self._vel: Vec3 = (0.0, 0.0, 0.0)
         self._att: Vec3 = (0.0, 0.0, 0.0)
         self._rates: Vec3 = (0.0, 0.0, 0.0)
-        self._accel: Vec3 = (0.0, 0.0, 9.81)
+        self._accel: Vec3 = (0.0, 0.0, VehicleParams().gravity_mps2)
         self._range_m: float | None = None
         self.landed = True
-        self._hold_yaw = 0.0
-        self._armed_since_s = -math.inf
-        self._airborne_since_arm = False
-        self._landed_since_s: float | None = None
 
-    # --- properties ----------------------------------------------------------------------
+    # --- the autopilot's state, as PX4 names it -------------------------------------------
 
     @property
     def mode(self) -> str:
         """PX4 mode name ('POSCTL', 'OFFBOARD', 'AUTO.LAND', ...)."""
-        return px4_mode_name(px4_custom_mode(self.main_mode, self.sub_mode))
+        return px4_mode_name(px4_custom_mode(*PX4_MODES[self.autopilot.mode]))
+
+    @property
+    def armed(self) -> bool:
+        return self.autopilot.armed
+
+    @property
+    def failsafe_active(self) -> bool:
+        """The offboard-loss failsafe flies (until a mode is set or the vehicle disarms)."""
+        return self.autopilot.in_failsafe
+
+    @property
+    def kind(self) -> str:
+        """What flies the vehicle (:attr:`EmulatedAutopilot.kind`)."""
+        return self.autopilot.kind
+
+    @property
+    def home_m(self) -> tuple[float, float] | None:
+        """(x, y) ENU where OFFBOARD was last engaged: the RTL target."""
+        return self.autopilot.home_m
+
+    @property
+    def setpoint(self) -> AttitudeSetpoint | None:
+        """The last decoded SET_ATTITUDE_TARGET (ENU/FLU, newtons)."""
+        return self.autopilot.setpoint
+
+    @property
+    def last_setpoint_s(self) -> float:
+        return self.autopilot.last_setpoint_s
 
     @property
     def local_address(self):
@@ -296,15 +211,20 @@ class Px4Emulator:
         verify_signature_first(self.mav)
 
     def set_transport(self, transport) -> None:
-        """Swap the byte transport (e.g. wrap it in the simulator's link-fault impairment,
-        :class:`deck_simulator.node.ImpairedLink`); the encoder writes to the new one."""
+        """Swap the byte transport (e.g. wrap it in the link faults' impairment,
+        :class:`deck_simulator.link.ImpairedLink`); the encoder writes to the new one."""
         self.transport = transport
         self.mav.file = _Writer(transport)
+
+    def use_autopilot(self, autopilot: EmulatedAutopilot) -> None:
+        """Be the MAVLink face of ``autopilot`` (ticked by its world from now on)."""
+        self.autopilot = autopilot
+        self._drives_autopilot = False
 
     # --- stepping ------------------------------------------------------------------------
 
     def update(self, t_s: float) -> None:
-        """Read and handle every pending packet, then run the failsafe and disarm logic."""
+        """Read and handle every pending packet (and, without a world, run the mode logic)."""
         if not math.isfinite(t_s):
             self.rejected['nan'] += 1
             return
@@ -336,7 +256,8 @@ class Px4Emulator:
                     self.rejected['bad_data'] += 1
             if valid and addr is not None:
                 self.transport.set_peer(addr)
-        self._run_logic(t_s)
+        if self._drives_autopilot:
+            self.autopilot.update(t_s, self.landed)
         self._send_due(t_s, only_heartbeat=True)
 
     def publish_state(self, t_s: float, position_enu: Vec3, velocity_enu: Vec3, roll: float,
@@ -359,28 +280,9 @@ class Px4Emulator:
         self._accel = tuple(accel_body_flu)
         self._range_m = range_m if range_m is not None and math.isfinite(range_m) else None
         self.landed = bool(landed)
+        if self._drives_autopilot:
+            self.autopilot.landed = self.landed
         self._send_due(t_s, only_heartbeat=False)
-
-    def command(self) -> VehicleCommand:
-        """What the vehicle should fly now (see :class:`VehicleCommand`)."""
-        roll, pitch, yaw = self._att
-        if not self.armed:
-            return VehicleCommand('idle', 0.0, 0.0, yaw, 0.0)
-        mode = (self.main_mode, self.sub_mode)
-        if mode == MODE_OFFBOARD and self.setpoint is not None:
-            return self.setpoint
-        cal = self.params.thrust
-        if mode == MODE_AUTO_LAND:
-            vz_ref, kind = -self.params.land_speed_mps, (
-                'failsafe_land' if self.failsafe_active else 'land')
-        elif mode == MODE_AUTO_RTL:
-            vz_ref, kind = 0.0, 'failsafe_return'
-        else:
-            vz_ref, kind = 0.0, 'hold'
-        accel = cal.gravity_mps2 + self.params.vz_gain_per_s * (vz_ref - self._vel[2])
-        tilt = max(math.cos(roll) * math.cos(pitch), 0.5)
-        thrust = min(max(cal.mass_kg * accel / tilt, 0.0), cal.max_thrust_n)
-        return VehicleCommand(kind, 0.0, 0.0, self._hold_yaw, thrust)
 
     # --- internals -----------------------------------------------------------------------
 
@@ -395,13 +297,6 @@ class Px4Emulator:
 
     def _time_boot_ms(self, t_s: float) -> int:
         return max(int((t_s - (self._t0_s or 0.0)) * 1000.0), 0) & 0xFFFFFFFF
-
-    def _set_mode(self, mode: tuple[int, int]) -> None:
-        if mode != MODE_OFFBOARD:
-            self._hold_yaw = self._att[2]  # hold/land keep the heading of the switch
-        elif (self.main_mode, self.sub_mode) != MODE_OFFBOARD:
-            self.home_m = (self._pos[0], self._pos[1])   # RTL comes back here
-        self.main_mode, self.sub_mode = mode
 
     def _ack(self, command: int, result: int, msg) -> None:
         self.acks.append((command, result))
@@ -427,11 +322,8 @@ class Px4Emulator:
                 self.rejected['nan'] += 1
                 return
             self.counters['setpoints_rx'] += 1
-            if t_s - self.last_setpoint_s > p.max_setpoint_gap_s:
-                self._stream_start_s = t_s
-            self.last_setpoint_s = t_s
-            self.setpoint = VehicleCommand('offboard', tgt.roll_rad, tgt.pitch_rad,
-                                           tgt.yaw_rad, tgt.thrust_n)
+            self.autopilot.on_setpoint(t_s, tgt.roll_rad, tgt.pitch_rad, tgt.yaw_rad,
+                                       tgt.thrust_n)
         elif kind == 'TIMESYNC':
             # PX4 (Timesync::handle_time_sync): a request (tc1 == 0) is answered at once with
             # tc1 = our time (ns) and the request's ts1 echoed; the companion's round trip is
@@ -449,6 +341,7 @@ class Px4Emulator:
 
     def _handle_command(self, t_s: float, msg) -> None:
         cmd = msg.command
+        ap = self.autopilot
         if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
             if msg_id not in self.intervals_s or not math.isfinite(interval_us):
@@ -463,64 +356,17 @@ class Px4Emulator:
             self._next_due[msg_id] = -math.inf
             self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
         elif cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            if msg.param1 >= 0.5:
-                if not self.armed:
-                    self.armed = True
-                    self._armed_since_s = t_s
-                    self._airborne_since_arm = not self.landed
-                    self._landed_since_s = None
-                    self._hold_yaw = self._att[2]
-                self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
-            elif self.landed or int(msg.param2) == FORCE_DISARM_MAGIC or not self.armed:
-                self._disarm()
-                self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
-            else:
-                self._ack(cmd, mavlink.MAV_RESULT_DENIED, msg)  # no disarm in the air
+            self._ack(cmd, ap.request_arm(t_s, msg.param1 >= 0.5,
+                                          force=int(msg.param2) == FORCE_DISARM_MAGIC), msg)
         elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
             mode = (int(msg.param2), int(msg.param3) if int(msg.param2) == 4 else 0)
             if not int(msg.param1) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or \
                     mode not in _ACCEPTED_MODES:
                 self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
                 return
-            if mode == MODE_OFFBOARD and not self._stream_warm(t_s):
-                self._ack(cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, msg)
-                return
-            self._set_mode(mode)
-            self.failsafe_active = False
-            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
+            self._ack(cmd, ap.request_mode(t_s, _ACCEPTED_MODES[mode]), msg)
         else:
             self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
-
-    def _stream_warm(self, t_s: float) -> bool:
-        """Setpoints have streamed for > offboard_warmup_s at > 2 Hz and are still flowing."""
-        p = self.params
-        return (t_s - self.last_setpoint_s <= p.max_setpoint_gap_s
-                and t_s - self._stream_start_s > p.offboard_warmup_s)
-
-    def _disarm(self) -> None:
-        self.armed = False
-        self.failsafe_active = False  # counters['failsafes'] keeps the history
-        self._landed_since_s = None
-
-    def _run_logic(self, t_s: float) -> None:
-        p = self.params
-        if (self.main_mode, self.sub_mode) == MODE_OFFBOARD and \
-                t_s - self.last_setpoint_s > p.offboard_loss_timeout_s:
-            self._set_mode({'land': MODE_AUTO_LAND, 'return': MODE_AUTO_RTL}.get(
-                p.offboard_loss_action, MODE_AUTO_LOITER))
-            self.failsafe_active = True
-            self.counters['failsafes'] += 1
-        if not self.armed:
-            return
-        if not self.landed:
-            self._airborne_since_arm = True
-            self._landed_since_s = None
-            return
-        if self._landed_since_s is None:
-            self._landed_since_s = t_s
-        limit = p.disarm_landed_s if self._airborne_since_arm else p.disarm_preflight_s
-        if limit > 0.0 and t_s - self._landed_since_s >= limit:
-            self._disarm()
 
     def _send_due(self, t_s: float, only_heartbeat: bool) -> None:
         for msg_id, interval in self.intervals_s.items():
@@ -537,11 +383,12 @@ class Px4Emulator:
         m = self.mav
         ms = self._time_boot_ms(t_s)
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            armed = self.autopilot.armed
             base = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (MAV_MODE_FLAG_SAFETY_ARMED
-                                                        if self.armed else 0)
-            status = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
+                                                        if armed else 0)
+            status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
             m.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base,
-                             px4_custom_mode(self.main_mode, self.sub_mode), status)
+                             px4_custom_mode(*PX4_MODES[self.autopilot.mode]), status)
         elif msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
             r, p, y = euler_enu_flu_to_ned_frd(*self._att)
             wr, wp, wy = flu_to_frd(*self._rates)
@@ -575,3 +422,7 @@ class Px4Emulator:
             m.extended_sys_state_send(mavlink.MAV_VTOL_STATE_UNDEFINED,
                                       mavlink.MAV_LANDED_STATE_ON_GROUND if self.landed
                                       else mavlink.MAV_LANDED_STATE_IN_AIR)
+
+
+__all__ = ['DEFAULT_INTERVALS_S', 'PX4_MODES', 'EmulatorParams', 'MemoryLink', 'Px4Emulator',
+           'UdpTransport', 'vehicle_thrust_calibration']
