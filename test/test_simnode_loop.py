@@ -6,6 +6,7 @@ MemoryLink); the Pixy bytes are parsed with pixy_driver's parser. Assertions are
 campaign's outcome semantics.
 """
 
+import dataclasses
 import json
 import math
 import random
@@ -13,11 +14,12 @@ import timeit
 
 from deck_simulator.autopilot import AutopilotParams, EmulatedAutopilot
 from deck_simulator.loop import SimulationLoop, TickSchedule, body_rates
-from deck_simulator.outcome import outcome_json
+from deck_simulator.outcome import RunOutcome, outcome_json
 from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
 from deck_simulator.scenario import load_scenario, scenario_from_dict
 from deck_simulator.transport import MemoryLink, parse_mavlink_url
 from deck_simulator.vehicle import VehicleParams
+from deckland.runner import RunResult
 from deckland_common.frames import rot_body_to_world
 from mavlink_bridge.conversions import set_attitude_target_fields
 from pixy_driver.protocol import PixyParser
@@ -283,10 +285,11 @@ def test_outcome_on_the_pad_counts_trigger_and_searches():
     assert out['max_thrust_n'] >= M * G * 0.99
     assert out['horizontal_error_m'] < 0.1 and out['seed'] == 1
     assert out['scenario'] == 'calm_test'
-    for key in ('seed', 'scenario', 'landed_on_deck', 'success', 'crash', 'fallback',
-                'contact_kind', 'horizontal_error_m', 'touchdown_speed_mps', 'time_to_land_s',
-                'searches', 'max_thrust_n', 'reason'):
-        assert key in out
+    # one outcome record: the runner's RunResult fields minus what only the runner knows
+    assert set(out) == {f.name for f in dataclasses.fields(RunOutcome)}
+    assert set(out) == set(RunResult(seed=1, scenario='s').summary()) - {
+        'controller', 'link_degraded_s', 'link_latency_s'}
+    assert out['outcome'] == 'deck' and out['failsafes'] == 0 and out['failsafe_mode'] == ''
 
 
 def test_timeout_outcome_counts_from_the_trigger():
@@ -299,6 +302,8 @@ def test_timeout_outcome_counts_from_the_trigger():
     assert len(rig.outcomes) == 1
     out = rig.outcomes[0]
     assert out['reason'] == 'timeout' and not out['success'] and out['contact_kind'] == 'none'
+    assert out['detail'] == 'no touchdown within 1 s of the landing trigger'
+    assert out['outcome'] == 'hold'                  # hovering at the timeout, not a failure
     assert out['sim_time_s'] == pytest.approx(1.6, abs=0.01)
     assert out['horizontal_error_m'] is None and out['time_to_land_s'] is None
     rig.run(1.0)

@@ -91,9 +91,9 @@ class AutopilotParams:
 
     def __post_init__(self) -> None:
         for name in ('offboard_loss_timeout_s', 'land_speed_mps', 'climb_speed_mps',
-                     'return_speed_mps', 'offboard_warmup_s', 'max_setpoint_gap_s'):
+                     'return_speed_mps', 'max_setpoint_gap_s'):
             positive(f'AutopilotParams.{name}', getattr(self, name))
-        for name in ('action_delay_s', 'min_alt_m'):
+        for name in ('action_delay_s', 'min_alt_m', 'offboard_warmup_s'):
             v = getattr(self, name)
             require(is_finite_number(v) and v >= 0, f'AutopilotParams.{name}',
                     'must be a finite number >= 0', v)
@@ -175,7 +175,7 @@ class EmulatedAutopilot:
     @property
     def failsafe(self) -> str | None:
         """The failsafe phase flown now: ``'hold'``, ``'return'``, ``'land'``, or None."""
-        return self._law if self.in_failsafe else None
+        return self._law if self.in_failsafe and self.armed else None
 
     @property
     def kind(self) -> str:
