@@ -98,8 +98,7 @@ def test_a_fallback_without_the_target_still_holds_its_gps_position():
     f = _Final()
     f.beacon = False
     f.run(0.5)
-    f.p._enter(Mode.FALLBACK, f.t, 'test: searches used up')
-    f.p._on_entry(f.t)
+    f.p._switch_to(Mode.FALLBACK, f.t, 'test: searches used up')
     f.run(0.1)
     sp = f.out.setpoint_m
     f.beacon = True
@@ -124,7 +123,7 @@ def test_a_fallback_after_the_searches_over_the_tracked_deck_follows_it():
     camera's beacon down (the GPS error moves the reported vehicle and beacon together)."""
     f = _Final()
     f.run(0.5)
-    f.p.searches = f.p.params.max_searches
+    f.p._search.attempts = f.p.params.max_searches
     f.p._search_or_fallback(f.t, 'test: target lost')
     assert f.p.mode is Mode.FALLBACK
     f.run(2.0, drift_mps=(0.0, 0.15))

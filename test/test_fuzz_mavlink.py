@@ -195,12 +195,14 @@ def test_mavlink_garbage_nan_telemetry_and_other_systems(bridge):
         assert len(rig.out['vehicle/odom']) == n_odom or msg.get_type() != 'LOCAL_POSITION_NED'
         rig.check_clean()
 
-    # 3. DISTANCE_SENSOR 0 cm and 65535 cm (UINT16_MAX: unknown) are "no return": +inf
-    for cm, max_cm in ((0, 4000), (65535, 4000), (65535, 0), (65535, 65535)):
+    # 3. DISTANCE_SENSOR 65535 cm (UINT16_MAX: unknown) is "no return", +inf; 0 cm (PX4 SIH
+    # on the ground) is "too close", -inf (REP-117)
+    for cm, max_cm, want in ((0, 4000, -INF), (65535, 4000, INF), (65535, 0, INF),
+                             (65535, 65535, INF)):
         n = len(rig.out['vehicle/range'])
         send_and_wait(rig, node, ap, ap.distance(current_cm=cm, max_cm=max_cm))
         assert rig.spin_until(lambda n=n: len(rig.out['vehicle/range']) > n, 2.0)
-        assert rig.out['vehicle/range'][-1].range == INF, (cm, max_cm)
+        assert rig.out['vehicle/range'][-1].range == want, (cm, max_cm)
 
     # 4. another system's heartbeat and telemetry never become ours (counted)
     att_before = node._att

@@ -124,8 +124,12 @@ def test_negative_round_trip_is_rejected():
 # --- BridgeCore ---------------------------------------------------------------------------
 
 def linked_core() -> BridgeCore:
+    """A core linked to a PX4 in OFFBOARD that has read a safe set-up (Land, 1 s, 0.5)."""
     core = BridgeCore(BridgeParams())
     core.on_heartbeat(0.0, 1, 1, 2, 12, 128, px4_custom_mode(6))
+    core.on_param_value('COM_OBL_RC_ACT', 4.0, 9)
+    core.on_param_value('COM_OF_LOSS_T', 1.0, 9)
+    core.on_param_value('MPC_THR_HOVER', 0.5, 9)
     return core
 
 

@@ -21,6 +21,7 @@ from mavlink_bridge.conversions import (
     landing_target_px4,
     local_position_ned_to_enu,
     mode_name,
+    param_value_to_wire,
     px4_custom_mode,
     px4_mode_name,
     quat_enu_flu_to_ned_frd,
@@ -221,9 +222,15 @@ def test_set_attitude_target_wire_round_trip():
 
 # --- core ------------------------------------------------------------------------------------
 
-def link_core(params=None, t=0.0):
+def link_core(params=None, t=0.0, px4_params=True):
+    """A core linked to a PX4 (heartbeat) that has read a safe PX4 set-up: COM_OBL_RC_ACT = 4
+    (Land, INT32 sent bytewise as PX4 does), COM_OF_LOSS_T = 1 s, MPC_THR_HOVER = 0.5."""
     core = BridgeCore(params or BridgeParams())
     assert core.on_heartbeat(t, 1, 1, 2, 12, 0, px4_custom_mode(3))
+    if px4_params and core.params.autopilot == 'px4':
+        core.on_param_value('COM_OBL_RC_ACT', param_value_to_wire(4, 6, True), 6)
+        core.on_param_value('COM_OF_LOSS_T', 1.0, 9)
+        core.on_param_value('MPC_THR_HOVER', 0.5, 9)
     return core
 
 
@@ -355,10 +362,12 @@ def test_core_offboard_waits_for_warm_stream_then_retries_until_heartbeat():
         t += 0.01
     assert modes_sent, 'OFFBOARD never requested'
     first = modes_sent[0][0]
-    assert first >= core.params.offboard_warmup_s > 1.0     # PX4: > 1 s of setpoints first
+    # only while streaming, after offboard_warmup_s (PX4 v1.16 itself needs one setpoint
+    # younger than COM_OF_LOSS_T, not "> 1 s of setpoints")
+    assert core.params.offboard_warmup_s - 1e-9 <= first < 0.5
     assert modes_sent[0][1].params[:3] == (1.0, 6.0, 0.0)
-    assert len(modes_sent) >= 2                              # retried (no mode change seen)
-    core.on_heartbeat(t, 1, 1, 2, 12, 0, px4_custom_mode(6))
+    assert len(modes_sent) >= 2                              # retried (no ACK, no mode change)
+    core.on_heartbeat(t, 1, 1, 2, 12, 128, px4_custom_mode(6))      # armed, OFFBOARD
     core.step(t)
     assert core.last_result == 'OFFBOARD active' and not core.pending()['offboard']
 
@@ -367,7 +376,7 @@ def test_core_offboard_never_sent_when_inputs_go_stale():
     core = link_core()
     core.request_offboard(0.0)
     t, sent = 0.0, 0
-    while t < 0.8:                                            # 0.8 s of stream then silence
+    while t < 0.15:                              # a stream shorter than the warm-up, then
         core.on_attitude_command(t, t, q_of(0, 0, 0))
         core.on_thrust_command(t, t, 20.0)
         sent += sum(o.command == MAV_CMD_DO_SET_MODE for o in core.step(t))
@@ -422,7 +431,11 @@ def test_core_ardupilot_checks_guid_options():
 
 def test_params_validation():
     with pytest.raises(ValueError, match='offboard_warmup_s'):
-        BridgeParams(offboard_warmup_s=0.5)
+        BridgeParams(offboard_warmup_s=-0.1)
+    with pytest.raises(ValueError, match='offboard_loss_actions'):
+        BridgeParams(offboard_loss_actions=('land', 'loiter'))
+    with pytest.raises(ValueError, match='hover_thrust_source'):
+        BridgeParams(hover_thrust_source='guess')
     with pytest.raises(ValueError, match='autopilot'):
         BridgeParams(autopilot='inav')
     with pytest.raises(ValueError, match='input_timeout_s'):

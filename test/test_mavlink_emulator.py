@@ -4,7 +4,6 @@ emulator without a world runs its autopilot's mode logic itself)."""
 import math
 import random
 
-from deck_simulator.autopilot import AutopilotParams
 from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
 from deck_simulator.transport import MemoryLink
 from mavlink_bridge.conversions import ThrustCalibration, set_attitude_target_fields
@@ -85,19 +84,20 @@ def test_set_message_interval_changes_rate():
     assert 29 <= counts['LOCAL_POSITION_NED'] <= 31
 
 
-def test_offboard_needs_a_second_of_setpoints():
+def test_offboard_needs_one_fresh_setpoint_when_armed():
     c = Companion()
-    c.state(0.0, landed=True)
-    c.command(400, 1.0)                                           # arm
-    t = stream(c, 0.0, 0.6)
-    c.command(176, 1.0, 6.0)                                      # OFFBOARD too early
-    c.emu.update(t)
-    assert c.emu.acks[-1] == (176, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+    c.state(0.0, landed=False)
+    c.command(400, 1.0)                                           # arm (in the air)
+    c.emu.update(0.0)
+    c.command(176, 1.0, 6.0)                                      # OFFBOARD, no setpoint yet
+    c.emu.update(0.01)
+    # PX4 v1.16: the receiver's ACCEPTED, then the commander's TEMPORARILY_REJECTED
+    assert c.emu.acks[-2:] == [(176, 0), (176, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)]
     assert c.emu.mode == 'POSCTL'
-    t = stream(c, t, 1.3)
+    c.setpoint()                                                  # one setpoint is enough
     c.command(176, 1.0, 6.0)
-    c.emu.update(t)
-    assert c.emu.acks[-1] == (176, mavlink.MAV_RESULT_ACCEPTED)
+    c.emu.update(0.02)
+    assert c.emu.acks[-2:] == [(176, 0), (176, 0)]
     assert c.emu.mode == 'OFFBOARD' and c.emu.armed and c.emu.kind == 'offboard'
     sp = c.emu.setpoint
     assert (sp.roll_rad, sp.pitch_rad, sp.yaw_rad) == pytest.approx((0.1, 0.05, 1.0),
@@ -105,12 +105,24 @@ def test_offboard_needs_a_second_of_setpoints():
     assert sp.thrust_n == pytest.approx(20.0, abs=1e-4)
 
 
-def test_slow_stream_never_warms_up():
+def test_offboard_setpoint_older_than_com_of_loss_t_is_refused():
     c = Companion()
-    t = stream(c, 0.0, 3.0, hz=1.5)                               # < 2 Hz
+    c.state(0.0, landed=False)
+    c.command(400, 1.0)
+    c.setpoint()
+    c.emu.update(0.0)
     c.command(176, 1.0, 6.0)
-    c.emu.update(t)
-    assert c.emu.mode == 'POSCTL'
+    c.emu.update(1.05)                                            # > COM_OF_LOSS_T later
+    assert c.emu.acks[-1] == (176, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+    # disarmed, PX4 accepts OFFBOARD with no setpoint at all (then refuses to arm in it)
+    d = Companion()
+    d.state(0.0, landed=True)
+    d.command(176, 1.0, 6.0)
+    d.emu.update(0.0)
+    assert d.emu.mode == 'OFFBOARD' and not d.emu.armed
+    d.command(400, 1.0)
+    d.emu.update(0.1)
+    assert not d.emu.armed and d.emu.acks[-1] == (400, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
 
 
 def test_offboard_loss_failsafe_lands_after_com_of_loss_t():
@@ -139,13 +151,13 @@ def test_offboard_loss_failsafe_lands_after_com_of_loss_t():
 
 
 def test_disarm_rules():
-    c = Companion(EmulatorParams(autopilot=AutopilotParams(disarm_preflight_s=0.0)))
+    c = Companion(EmulatorParams(disarm_preflight_s=0.0))
     c.state(0.0, landed=False)
     c.command(400, 1.0)
     c.emu.update(0.0)
-    c.command(400, 0.0)                                           # in the air: denied
+    c.command(400, 0.0)                                           # in the air: refused
     c.emu.update(0.1)
-    assert c.emu.armed and c.emu.acks[-1] == (400, mavlink.MAV_RESULT_DENIED)
+    assert c.emu.armed and c.emu.acks[-1] == (400, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
     c.command(400, 0.0, 21196.0)                                  # forced
     c.emu.update(0.2)
     assert not c.emu.armed and c.emu.kind == 'idle'
@@ -160,6 +172,64 @@ def test_disarm_rules():
     assert c.emu.armed
     c.emu.update(2.6)
     assert not c.emu.armed
+
+
+def test_px4_parameters_answered_with_px4_names_defaults_and_encoding():
+    from mavlink_bridge.conversions import param_value_from_wire, param_value_to_wire
+    c = Companion(EmulatorParams(offboard_loss_action='position'))   # PX4's default
+    for name in ('COM_OBL_RC_ACT', 'COM_OF_LOSS_T', 'MPC_THR_HOVER', 'NO_SUCH_PARAM'):
+        c.mav.param_request_read_send(1, 1, name.encode(), -1)
+    c.emu.update(0.0)
+    got = {m.param_id: m for m in c.received() if m.get_type() == 'PARAM_VALUE'}
+    assert set(got) == {'COM_OBL_RC_ACT', 'COM_OF_LOSS_T', 'MPC_THR_HOVER'}   # PX4: silence
+    act = got['COM_OBL_RC_ACT']
+    assert act.param_type == 6 and param_value_from_wire(act.param_value, 6, True) == 0.0
+    assert got['COM_OF_LOSS_T'].param_value == pytest.approx(1.0)
+    assert got['MPC_THR_HOVER'].param_value == pytest.approx(0.5)
+    # PARAM_SET COM_OBL_RC_ACT = 4 (bytewise) switches the loss action to Land
+    c.mav.param_set_send(1, 1, b'COM_OBL_RC_ACT', param_value_to_wire(4, 6, True), 6)
+    c.emu.update(0.1)
+    (echo,) = [m for m in c.received() if m.get_type() == 'PARAM_VALUE']
+    assert param_value_from_wire(echo.param_value, 6, True) == 4.0
+    assert c.emu.params.offboard_loss_action == 'land'
+
+
+def test_heartbeat_interval_refused_as_px4_does():
+    c = Companion()
+    c.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 1e6)
+    c.emu.update(0.0)
+    assert c.emu.acks[-1] == (511, mavlink.MAV_RESULT_FAILED)
+
+
+def _fly_offboard(c):
+    c.state(0.0, landed=False)
+    c.command(400, 1.0)
+    c.setpoint()
+    c.command(176, 1.0, 6.0)
+    c.emu.update(0.0)
+    assert c.emu.mode == 'OFFBOARD'
+
+
+def test_default_px4_loss_action_descends_in_posctl():
+    c = Companion(EmulatorParams(offboard_loss_action='position'))
+    _fly_offboard(c)
+    c.emu.update(1.05)
+    # PX4 default COM_OBL_RC_ACT = 0 without RC: the heartbeat reads POSCTL, it descends
+    assert c.emu.mode == 'POSCTL' and c.emu.failsafe_active
+    assert c.emu.kind == 'failsafe_land'
+
+
+def test_after_a_failsafe_landing_px4_reads_offboard_while_disarmed():
+    c = Companion(EmulatorParams(disarm_landed_s=2.0))
+    _fly_offboard(c)
+    c.emu.update(1.05)
+    assert c.emu.mode == 'AUTO.LAND'
+    c.state(1.5, landed=True)
+    c.emu.update(1.5)
+    c.emu.update(3.6)                                             # COM_DISARM_LAND = 2 s
+    assert not c.emu.armed and c.emu.mode == 'OFFBOARD' and not c.emu.failsafe_active
+    c.emu.update(10.0)                                            # no failsafe while disarmed
+    assert c.emu.mode == 'OFFBOARD' and c.emu.kind == 'idle'
 
 
 def test_garbage_and_bad_setpoints_are_counted_not_raised():

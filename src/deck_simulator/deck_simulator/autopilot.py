@@ -30,7 +30,9 @@ HOLD = 'hold'           # PX4 AUTO.LOITER
 LAND = 'land'           # PX4 AUTO.LAND
 RETURN = 'return'       # PX4 AUTO.RTL
 MODES = (POSITION, ALTITUDE, OFFBOARD, HOLD, LAND, RETURN)
-LOSS_ACTIONS = ('land', 'hold', 'return')
+#: offboard-loss actions (COM_OBL_RC_ACT): 'position' is PX4's default 0, without RC a descent
+#: while the mode reads POSCTL
+LOSS_ACTIONS = ('land', 'hold', 'return', 'position')
 
 # command results, as MAV_RESULT
 ACCEPTED = 0
@@ -76,7 +78,7 @@ class AutopilotParams:
     """Behaviour of :class:`EmulatedAutopilot`; comments name the PX4 parameter it stands for."""
 
     offboard_loss_timeout_s: float = 1.0   # COM_OF_LOSS_T
-    offboard_loss_action: str = 'land'     # COM_OBL_RC_ACT: 'land' | 'hold' | 'return' (RTL)
+    offboard_loss_action: str = 'land'     # COM_OBL_RC_ACT: land | hold | return | position
     action_delay_s: float = 0.0            # COM_FAIL_ACT_T: hold this long before the action
     land_speed_mps: float = 0.7            # MPC_LAND_SPEED
     min_alt_m: float = 0.0                 # failsafe hold/return: climb to this world altitude
@@ -84,16 +86,14 @@ class AutopilotParams:
     return_speed_mps: float = 1.0          # RTL horizontal speed toward home
     reengage_offboard: bool = False        # a setpoint ends a failsafe (the in-process stand-in
     #                                        of the companion asking for OFFBOARD again)
-    offboard_warmup_s: float = 1.0         # setpoints needed before OFFBOARD is accepted
-    max_setpoint_gap_s: float = 0.5        # a longer gap restarts the warm-up (> 2 Hz)
     disarm_landed_s: float = 2.0           # COM_DISARM_LAND (<= 0: off)
     disarm_preflight_s: float = 10.0       # COM_DISARM_PRFLT (<= 0: off)
 
     def __post_init__(self) -> None:
         for name in ('offboard_loss_timeout_s', 'land_speed_mps', 'climb_speed_mps',
-                     'return_speed_mps', 'max_setpoint_gap_s'):
+                     'return_speed_mps'):
             positive(f'AutopilotParams.{name}', getattr(self, name))
-        for name in ('action_delay_s', 'min_alt_m', 'offboard_warmup_s'):
+        for name in ('action_delay_s', 'min_alt_m'):
             v = getattr(self, name)
             require(is_finite_number(v) and v >= 0, f'AutopilotParams.{name}',
                     'must be a finite number >= 0', v)
@@ -160,7 +160,7 @@ class EmulatedAutopilot:
         self.setpoint: AttitudeSetpoint | None = None
         self.last_setpoint_s = -math.inf
         self.rejected: dict[str, int] = {'nan': 0}
-        self._stream_start_s = math.inf
+        self._user_mode = POSITION    # the mode last asked for: restored after a failsafe
         self._law = 'idle'            # 'offboard' | 'idle' | 'hold' | 'land' | 'return'
         self._ref = (0.0, 0.0, 0.0, 0.0)   # held x, y, z, yaw
         self._braked = False
@@ -185,8 +185,10 @@ class EmulatedAutopilot:
             return 'idle'
         if self.mode == OFFBOARD:
             return 'offboard'
-        name = LAND if self.mode == LAND else RETURN if self.mode == RETURN else HOLD
-        return 'failsafe_' + name if self.in_failsafe else name
+        if self.in_failsafe:
+            return 'failsafe_' + ('hold' if self._law == HOLD and self.mode == HOLD
+                                  else RETURN if self.mode == RETURN else LAND)
+        return LAND if self.mode == LAND else HOLD
 
     @property
     def hold_point_m(self) -> tuple[float, float, float]:
@@ -210,13 +212,12 @@ class EmulatedAutopilot:
         self.armed = True
         self._airborne_since_arm = True
         self.last_setpoint_s = t_s
+        self._user_mode = OFFBOARD
         self._set_mode(OFFBOARD, t_s)
 
     def on_setpoint(self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float,
                     thrust_n: float) -> None:
         """A companion setpoint arrived at ``t_s`` (finite values: the caller checks)."""
-        if t_s - self.last_setpoint_s > self.params.max_setpoint_gap_s:
-            self._stream_start_s = t_s
         self.last_setpoint_s = t_s
         self.setpoint = AttitudeSetpoint(roll_rad, pitch_rad, yaw_rad, thrust_n)
         if self.in_failsafe:
@@ -233,17 +234,24 @@ class EmulatedAutopilot:
             w.set_command(roll_rad, pitch_rad, yaw_rad, thrust_n)
 
     def request_mode(self, t_s: float, mode: str) -> int:
-        """A mode change asked by the companion; a MAV_RESULT code."""
+        """A mode change asked by the companion; a MAV_RESULT code. OFFBOARD needs a
+        setpoint younger than COM_OF_LOSS_T when armed and is always accepted while disarmed
+        (PX4 v1.16)."""
         if mode not in MODES:
             return UNSUPPORTED
-        if mode == OFFBOARD and not self.stream_warm(t_s):
+        if mode == OFFBOARD and self.armed and not self.setpoint_fresh(t_s):
             return TEMPORARILY_REJECTED
+        self._user_mode = mode
         self._set_mode(mode, t_s)
         return ACCEPTED
 
     def request_arm(self, t_s: float, arm: bool, force: bool = False) -> int:
-        """Arm, or disarm (on the ground, when forced, or when not armed); a MAV_RESULT code."""
+        """Arm (in OFFBOARD only with a fresh setpoint), or disarm (on the ground, when
+        forced, or when not armed; in the air TEMPORARILY_REJECTED, as PX4 v1.16); a
+        MAV_RESULT code."""
         if arm:
+            if self.mode == OFFBOARD and not self.armed and not self.setpoint_fresh(t_s):
+                return TEMPORARILY_REJECTED
             if not self.armed:
                 self.armed = True
                 self._airborne_since_arm = not self.landed
@@ -253,13 +261,11 @@ class EmulatedAutopilot:
         if self.landed or force or not self.armed:
             self._disarm()
             return ACCEPTED
-        return DENIED   # no disarm in the air
+        return TEMPORARILY_REJECTED   # "Disarming denied: not landed"
 
-    def stream_warm(self, t_s: float) -> bool:
-        """Setpoints have streamed for > ``offboard_warmup_s`` at > 2 Hz and still flow."""
-        p = self.params
-        return (t_s - self.last_setpoint_s <= p.max_setpoint_gap_s
-                and t_s - self._stream_start_s > p.offboard_warmup_s)
+    def setpoint_fresh(self, t_s: float) -> bool:
+        """The last setpoint is younger than COM_OF_LOSS_T."""
+        return t_s - self.last_setpoint_s <= self.params.offboard_loss_timeout_s
 
     # --- simulator side ------------------------------------------------------------------
 
@@ -284,7 +290,8 @@ class EmulatedAutopilot:
         """Mode logic at ``t_s``: offboard loss → failsafe, its action after the delay, the
         land detector (``landed``: resting on a surface)."""
         p = self.params
-        if self.mode == OFFBOARD and t_s - self.last_setpoint_s > p.offboard_loss_timeout_s:
+        if (self.armed and self.mode == OFFBOARD
+                and t_s - self.last_setpoint_s > p.offboard_loss_timeout_s):
             self.failsafes += 1
             self.mode = HOLD
             self.in_failsafe = True
@@ -294,9 +301,10 @@ class EmulatedAutopilot:
             self._action_pending = False
             act = p.offboard_loss_action
             if act != 'hold':
-                self.mode = RETURN if act == 'return' else LAND
+                self.mode = (RETURN if act == 'return' else POSITION if act == 'position'
+                             else LAND)
                 if self.armed:
-                    self._law = act
+                    self._law = RETURN if act == 'return' else LAND
         self.landed = landed
         if not self.armed:
             return
@@ -343,6 +351,10 @@ class EmulatedAutopilot:
 
     def _disarm(self) -> None:
         self.armed = False
+        if self.in_failsafe:
+            # PX4 restores the mode asked for once the failsafe clears (at disarm): after a
+            # failsafe landing it reads OFFBOARD while disarmed (v1.16, measured)
+            self.mode = self._user_mode
         self.in_failsafe = False   # self.failsafes keeps the history
         self._action_pending = False
         self._landed_since_s = -1.0

@@ -66,7 +66,7 @@ class SimulationLoop:
         self.world = world = World(scenario, seed, physics_dt_s=1.0 / physics_rate_hz)
         self.emulator = emulator
         fs = world.faults
-        params = emulator.params.autopilot
+        params = emulator.params.autopilot_params()
         if fs is not None and fs.has_link:   # COM_OF_LOSS_T, MPC_LAND_SPEED, RTL, ...
             params = with_link_fault(params, fs.link_spec)
         self.autopilot = EmulatedAutopilot(params, world)

@@ -31,7 +31,6 @@ from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from deck_simulator.autopilot import AutopilotParams
 from deck_simulator.link import DOWNLINK_MODES
 from deck_simulator.loop import SimulationLoop, TickSchedule, body_twist
 from deck_simulator.outcome import outcome_json
@@ -125,8 +124,7 @@ class DeckSimulatorNode(Node):
         # the autopilot maps normalised thrust to the *vehicle's* newtons: hover at 1/(T/W)
         self.emulator = Px4Emulator(EmulatorParams(
             thrust=vehicle_thrust_calibration(scenario.vehicle),
-            autopilot=AutopilotParams(offboard_loss_action=p['offboard_loss_action'])),
-            transport=link)
+            offboard_loss_action=p['offboard_loss_action']), transport=link)
         if p['signing_key_file']:
             # signing timestamps: 10 µs units since 2015-01-01 (wall clock, as PX4 with RTC)
             self.emulator.setup_signing(load_signing_key(p['signing_key_file']),

@@ -4,15 +4,15 @@
 state) over a byte transport (:mod:`deck_simulator.transport`) as PX4 presents itself, and
 hands what it decodes to an :class:`~deck_simulator.autopilot.EmulatedAutopilot` (modes,
 offboard acceptance, failsafes; the world flies it): ``update(t_s)`` reads the wire
-(SET_ATTITUDE_TARGET, COMMAND_LONG answered with COMMAND_ACK, TIMESYNC answered at once,
-HEARTBEAT); ``publish_state(t_s, ...)`` streams HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
-DISTANCE_SENSOR, HIGHRES_IMU / SCALED_IMU and EXTENDED_SYS_STATE at the requested rates.
+(SET_ATTITUDE_TARGET, COMMAND_LONG with PX4 v1.16's ACKs, TIMESYNC, PARAM_REQUEST_READ /
+PARAM_SET of PX4's parameters, HEARTBEAT); ``publish_state(t_s, ...)`` streams HEARTBEAT,
+ATTITUDE, LOCAL_POSITION_NED, DISTANCE_SENSOR, HIGHRES_IMU / SCALED_IMU, EXTENDED_SYS_STATE.
 Stepped with the simulator's time, never the wall clock.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 
 from deckland_common.frames import enu_to_ned, euler_enu_flu_to_ned_frd, flu_to_frd
@@ -21,8 +21,11 @@ from mavlink_bridge.conversions import (
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
     MAV_SENSOR_ROTATION_PITCH_270,
+    PX4_OFFBOARD_LOSS_ACTIONS,
     ThrustCalibration,
     decode_attitude_target,
+    param_value_from_wire,
+    param_value_to_wire,
     px4_custom_mode,
     px4_mode_name,
     range_m_to_distance_cm,
@@ -52,6 +55,9 @@ _ACCEPTED_MODES = {MODE_POSCTL: ap_modes.POSITION, MODE_ALTCTL: ap_modes.ALTITUD
                    MODE_OFFBOARD: ap_modes.OFFBOARD, MODE_AUTO_LOITER: ap_modes.HOLD,
                    MODE_AUTO_LAND: ap_modes.LAND}
 FORCE_DISARM_MAGIC = 21196
+_LOSS_ACTION_VALUE = {v: k for k, v in PX4_OFFBOARD_LOSS_ACTIONS.items()}
+MAV_PARAM_TYPE_INT32 = 6
+MAV_PARAM_TYPE_REAL32 = 9
 
 #: message id → default stream interval (s); ≤ 0 = off. SET_MESSAGE_INTERVAL changes them.
 DEFAULT_INTERVALS_S = {
@@ -73,7 +79,8 @@ def vehicle_thrust_calibration(vehicle: VehicleParams) -> ThrustCalibration:
 
 @dataclass(frozen=True, slots=True)
 class EmulatorParams:
-    """The MAVLink side; the autopilot's behaviour (PX4 parameters) is ``autopilot``."""
+    """The MAVLink side and the PX4 parameters the autopilot behaves by (PX4 names in the
+    comments; :meth:`autopilot_params` turns them into the autopilot's settings)."""
 
     system_id: int = 1
     component_id: int = 1
@@ -81,11 +88,18 @@ class EmulatorParams:
     bind_port: int = 14580                 # PX4 SITL's onboard link port (0 = any free port)
     remote_host: str = '127.0.0.1'
     remote_port: int = 14540               # where the companion (the bridge) listens
+    offboard_loss_timeout_s: float = 1.0   # COM_OF_LOSS_T (PX4 default 1.0 s)
+    #: COM_OBL_RC_ACT: 'land' (4, deckland's set-up, the README), 'hold' (5), 'return' (3,
+    #: RTL) or 'position' (0, PX4's default: without RC a descent while the heartbeat says
+    #: POSCTL)
+    offboard_loss_action: str = 'land'
+    land_speed_mps: float = 0.7            # MPC_LAND_SPEED
+    disarm_landed_s: float = 2.0           # COM_DISARM_LAND (<= 0: off)
+    disarm_preflight_s: float = 10.0       # COM_DISARM_PRFLT (<= 0: off)
     range_min_cm: int = 5                  # LidarLite v3
     range_max_cm: int = 4000
     thrust: ThrustCalibration = field(
         default_factory=lambda: vehicle_thrust_calibration(VehicleParams()))
-    autopilot: AutopilotParams = field(default_factory=AutopilotParams)
 
     def __post_init__(self) -> None:
         for name in ('system_id', 'component_id'):
@@ -97,6 +111,15 @@ class EmulatorParams:
                 and self.range_min_cm < self.range_max_cm < 65535,
                 'EmulatorParams.range_max_cm',
                 f'must be an integer in ({self.range_min_cm}, 65535)', self.range_max_cm)
+        self.autopilot_params()   # validates the autopilot's fields (ValueError naming them)
+
+    def autopilot_params(self) -> AutopilotParams:
+        """The autopilot's settings these PX4 parameters stand for."""
+        return AutopilotParams(offboard_loss_timeout_s=self.offboard_loss_timeout_s,
+                               offboard_loss_action=self.offboard_loss_action,
+                               land_speed_mps=self.land_speed_mps,
+                               disarm_landed_s=self.disarm_landed_s,
+                               disarm_preflight_s=self.disarm_preflight_s)
 
 
 class _Writer:
@@ -127,7 +150,8 @@ class Px4Emulator:
                                    srcComponent=p.component_id)
         self.mav.robust_parsing = True
         self._drives_autopilot = autopilot is None
-        self.autopilot = autopilot if autopilot is not None else EmulatedAutopilot(p.autopilot)
+        self.autopilot = autopilot if autopilot is not None else EmulatedAutopilot(
+            p.autopilot_params())
         self.rejected: dict[str, int] = {'nan': 0, 'bad_data': 0, 'out_of_order': 0,
                                          'wrong_target': 0, 'unsupported_mask': 0,
                                          'bad_signature': 0}
@@ -338,12 +362,23 @@ class Px4Emulator:
                 return
             self.counters['commands_rx'] += 1
             self._handle_command(t_s, msg)
+        elif kind in ('PARAM_REQUEST_READ', 'PARAM_SET'):
+            if msg.target_system not in (0, p.system_id):
+                self.rejected['wrong_target'] += 1
+                return
+            self._handle_param(msg)
 
     def _handle_command(self, t_s: float, msg) -> None:
+        """COMMAND_LONG with PX4 v1.16's answers (measured against its SITL): HEARTBEAT's
+        interval is refused (FAILED), a DO_SET_MODE is ACKed twice (the MAVLink receiver's
+        ACCEPTED, then the commander's verdict); arming and modes are the autopilot's rules."""
         cmd = msg.command
         ap = self.autopilot
         if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
+            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                self._ack(cmd, mavlink.MAV_RESULT_FAILED, msg)   # PX4: 1 Hz, by design
+                return
             if msg_id not in self.intervals_s or not math.isfinite(interval_us):
                 self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
                 return
@@ -359,14 +394,61 @@ class Px4Emulator:
             self._ack(cmd, ap.request_arm(t_s, msg.param1 >= 0.5,
                                           force=int(msg.param2) == FORCE_DISARM_MAGIC), msg)
         elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
+            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)      # PX4's MAVLink receiver
             mode = (int(msg.param2), int(msg.param3) if int(msg.param2) == 4 else 0)
             if not int(msg.param1) & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or \
                     mode not in _ACCEPTED_MODES:
                 self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
                 return
-            self._ack(cmd, ap.request_mode(t_s, _ACCEPTED_MODES[mode]), msg)
+            self._ack(cmd, ap.request_mode(t_s, _ACCEPTED_MODES[mode]), msg)   # the verdict
         else:
             self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
+
+    # --- parameters (PX4 v1.16 names, defaults and encoding) -----------------------------
+
+    def param_table(self) -> dict[str, tuple[int, float]]:
+        """The parameters this emulator answers, ``name → (MAV_PARAM_TYPE, value)``: PX4
+        v1.16's names and defaults, with the values its autopilot behaves by."""
+        a = self.autopilot.params
+        return {
+            'COM_OBL_RC_ACT': (MAV_PARAM_TYPE_INT32,
+                               float(_LOSS_ACTION_VALUE[a.offboard_loss_action])),
+            'COM_OF_LOSS_T': (MAV_PARAM_TYPE_REAL32, a.offboard_loss_timeout_s),
+            'MPC_THR_HOVER': (MAV_PARAM_TYPE_REAL32, self.params.thrust.hover_thrust_norm),
+            'MPC_USE_HTE': (MAV_PARAM_TYPE_INT32, 1.0),
+            'MPC_LAND_SPEED': (MAV_PARAM_TYPE_REAL32, a.land_speed_mps),
+            'COM_DISARM_LAND': (MAV_PARAM_TYPE_REAL32, a.disarm_landed_s),
+            'COM_DISARM_PRFLT': (MAV_PARAM_TYPE_REAL32, a.disarm_preflight_s),
+        }
+
+    def _handle_param(self, msg) -> None:
+        """PARAM_REQUEST_READ (by name; PX4 answers nothing for an unknown one) and PARAM_SET
+        of the behaviour parameters (COM_OBL_RC_ACT, COM_OF_LOSS_T, MPC_LAND_SPEED), each
+        answered with PARAM_VALUE; integers are encoded bytewise as PX4 does."""
+        name = msg.param_id.rstrip('\x00') if isinstance(msg.param_id, str) else ''
+        table = self.param_table()
+        if name not in table:
+            return
+        if msg.get_type() == 'PARAM_SET':
+            v = param_value_from_wire(msg.param_value, table[name][0], True)
+            change = {}
+            if name == 'COM_OBL_RC_ACT' and PX4_OFFBOARD_LOSS_ACTIONS.get(int(v)) in \
+                    ap_modes.LOSS_ACTIONS:
+                change['offboard_loss_action'] = PX4_OFFBOARD_LOSS_ACTIONS[int(v)]
+            elif name == 'COM_OF_LOSS_T':
+                change['offboard_loss_timeout_s'] = v
+            elif name == 'MPC_LAND_SPEED':
+                change['land_speed_mps'] = v
+            try:
+                self.autopilot.params = replace(self.autopilot.params, **change)
+                self.params = replace(self.params, **change)
+            except ValueError:
+                self.rejected['bad_data'] += 1   # out of range: the value stays
+            table = self.param_table()
+        names = list(table)
+        typ, value = table[name]
+        self.mav.param_value_send(name.encode('ascii'), param_value_to_wire(value, typ, True),
+                                  typ, len(names), names.index(name))
 
     def _send_due(self, t_s: float, only_heartbeat: bool) -> None:
         for msg_id, interval in self.intervals_s.items():

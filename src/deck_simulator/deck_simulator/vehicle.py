@@ -106,8 +106,9 @@ class Vehicle:
 
     __slots__ = (
         '_a_mot', '_dt_cache', '_k', 'ax', 'ay', 'az', 'cmd_pitch', 'cmd_roll', 'cmd_thrust',
-        'cmd_yaw', 'f1', 'f2', 'f3', 'f4', 'gamma', 'i_p', 'i_q', 'i_r', 'params', 'pitch',
-        'pitch_rate', 'roll', 'roll_rate', 'vx', 'vy', 'vz', 'x', 'y', 'yaw', 'yaw_rate', 'z',
+        'cmd_yaw', 'f1', 'f2', 'f3', 'f4', 'gamma', 'i_p', 'i_q', 'i_r', 'motor_cmd', 'params',
+        'pitch', 'pitch_rate', 'roll', 'roll_rate', 'vx', 'vy', 'vz', 'x', 'y', 'yaw',
+        'yaw_rate', 'z',
     )
 
     def __init__(self, params: VehicleParams, position_m: tuple[float, float, float],
@@ -126,6 +127,9 @@ class Vehicle:
         self.cmd_yaw = self.yaw
         self.cmd_thrust = hover
         self.gamma = 1.0
+        #: direct motor input (N, motors 1-4) from an external autopilot's mixer; None = the
+        #: built-in attitude loop and mixer fly the (roll, pitch, yaw, thrust) command
+        self.motor_cmd: tuple[float, float, float, float] | None = None
         self._dt_cache = -1.0
         self._a_mot = 0.0
         # parameters hoisted once (step() runs at 400 Hz): plain floats, same expressions
@@ -149,6 +153,22 @@ class Vehicle:
 
     def reset_attitude_loop(self) -> None:
         self.i_p = self.i_q = self.i_r = 0.0
+
+    def set_motor_thrusts(self, f1: float, f2: float, f3: float, f4: float) -> None:
+        """Direct motor input: commanded thrust of motors 1-4 (N, the numbering of (1)),
+        clamped to [0, motor_max_n] (NaN → 0); each motor still follows its first-order lag.
+        From then on :meth:`step` bypasses the built-in attitude loop (an external autopilot
+        such as PX4 in the loop mixes); :meth:`release_motors` gives it back."""
+        fmax = self.params.motor_max_n
+
+        def clamp(f: float) -> float:
+            return f if 0.0 <= f <= fmax else (fmax if f > fmax else 0.0)
+
+        self.motor_cmd = (clamp(f1), clamp(f2), clamp(f3), clamp(f4))
+
+    def release_motors(self) -> None:
+        """Back to the built-in attitude loop and mixer."""
+        self.motor_cmd = None
 
     def step(self, dt_s: float, surface_height_m: float, wind_x: float, wind_y: float,
              wind_z: float) -> None:
@@ -211,6 +231,9 @@ class Vehicle:
         c2 = 0.0 if c2 < 0.0 else (fmax if c2 > fmax else c2)
         c3 = 0.0 if c3 < 0.0 else (fmax if c3 > fmax else c3)
         c4 = 0.0 if c4 < 0.0 else (fmax if c4 > fmax else c4)
+        mc = self.motor_cmd
+        if mc is not None:      # direct motor input (set_motor_thrusts): the external mixer's
+            c1, c2, c3, c4 = mc
         a = self._a_mot
         f1 = self.f1
         f1 += a * (c1 - f1)

@@ -62,6 +62,7 @@ COMPILED_MODULES = (
     'landing_planner.horizontal',
     'landing_planner.planner',
     'landing_planner.reference',
+    'landing_planner.search',
     'landing_planner.types',
 )
 

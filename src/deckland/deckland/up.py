@@ -189,7 +189,12 @@ def graph_substitutions(args) -> dict[str, Any]:
     hardware = bool(args.hardware)
     scenario = None if hardware else load_scenario(args.scenario)
     mav_port, pixy_port = free_udp_port(), free_udp_port()
+    # the bridge enters OFFBOARD only with a safe offboard-loss action: Land or Hold, and
+    # Return where the scenario deliberately configures it (a return to the OFFBOARD point)
+    returns = scenario is not None and scenario.faults and any(
+        getattr(f, 'action', 'land') == 'return' for f in scenario.faults)
     return {
+        'offboard_loss_actions': 'land,hold,return' if returns else 'land,hold',
         'scenario': args.scenario, 'seed': args.seed,
         'mavlink_url': args.mavlink or f'udpout:127.0.0.1:{mav_port}',
         'sim_mavlink_url': f'udpin:127.0.0.1:{mav_port}',

@@ -1,30 +1,23 @@
 """Landing planner: the paper's landing procedure (section 3.3) as an explicit state machine.
 
-The paper lists Steps 1-16 but has no Step 8 and its loop 5 → 6 → 7 → 5 never reaches Step 9.
-This module defines the intended flow with named states and guarded transitions (README,
-"State machine"): APPROACH (Step 2) → ALIGN (Steps 3-5) → DESCEND (Steps 6-7) → FINAL (Steps
-9-10) → LANDED (Steps 15-16), with SEARCH (Steps 11-13), FALLBACK (Step 14) and HOLD (abort /
-invalid input) around them; Step 8 is read as "target lost for longer than the timeout → Step
-11".
-
-Outputs are what the controllers need: a horizontal setpoint with velocity feed-forward for
-the position loop, and a smooth vertical reference (z_d, ż_d, z̈_d) for the altitude law (16),
-produced by :class:`~landing_planner.reference.ReferenceGenerator` so that ż_d never steps
-(which would kick the term (17)). In the paper's ``deck_relative`` profile z_d is a height above
-the surface below (e_z of (7) is taken against the measured height, so the DOB rejects the
-heave); the ``constant_rate`` baseline flies DESCEND/FINAL on a world-altitude ramp instead
-(``PlannerOutput.vertical_mode``).
+One handler per mode (a ``_State``: entry actions, transitions, horizontal and vertical
+references) and one ``LandingPlanner._switch_to``; the flow, the Step numbers and the decisions
+where the paper is silent are in the package README ("State machine"). The search attempts and
+pattern are :mod:`landing_planner.search`. Outputs: a horizontal setpoint with velocity
+feed-forward and a jerk-limited vertical reference (z_d, ż_d, z̈_d) for the altitude law (16),
+above the surface below (a world-altitude ramp for the ``constant_rate`` baseline).
 
 Pure: no rclpy, no wall clock; stepped with explicit ``t_s`` / ``dt_s``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 import math
 from typing import TYPE_CHECKING
 
 from landing_planner.reference import ReferenceGenerator, ReferenceLimits
+from landing_planner.search import SearchPattern
 from landing_planner.types import (
     VERTICAL_RELATIVE,
     VERTICAL_WORLD_RATE,
@@ -169,7 +162,7 @@ def _finite(*values: float) -> bool:
 
 @dataclass
 class _Latch:
-    """Mutable bookkeeping of the state machine (timers, latched targets)."""
+    """Bookkeeping of the current mode (timers, latched targets), renewed by every switch."""
 
     t_mode: float = 0.0
     entry_pending: bool = True
@@ -180,9 +173,27 @@ class _Latch:
     t_landed_cond: float | None = None
     t_invalid: float | None = None
     over_deck: bool = False      # FALLBACK entered over the tracked deck: keep following it
-    waypoints: list[tuple[float, float]] = field(default_factory=list)
-    wp_index: int = 0
-    t_wp_reached: float | None = None
+
+
+class _Tick:
+    """What one step read from its inputs, handed to the mode handlers."""
+
+    __slots__ = ('apron', 'closing', 'dt_s', 'lost_for', 'rel', 't_s', 'target_ok', 'veh_ok',
+                 'vehicle', 'vert_ok')
+
+    def __init__(self, t_s: float, dt_s: float, vehicle: VehicleState, apron: ApronState,
+                 veh_ok: bool, target_ok: bool, rel: tuple[float, float], vert_ok: bool,
+                 closing: float, lost_for: float) -> None:
+        self.t_s = t_s
+        self.dt_s = dt_s
+        self.vehicle = vehicle
+        self.apron = apron
+        self.veh_ok = veh_ok
+        self.target_ok = target_ok        # tracked, finite, inside the area gate
+        self.rel = rel                    # camera offset of the target ((0, 0) if not ok)
+        self.vert_ok = vert_ok
+        self.closing = closing            # closing speed to the surface below (m/s)
+        self.lost_for = lost_for          # since the target was last ok (s)
 
 
 class LandingPlanner:
@@ -193,9 +204,10 @@ class LandingPlanner:
         p = self.params
         self.mode = Mode.IDLE
         self.reason = 'initial'
-        self.searches = 0
         self.rebases = 0
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'bad_dt': 0}
+        self._state: _State = _STATES[Mode.IDLE]
+        self._search = SearchPattern(p.max_searches, p.search_radius_m, p.search_hold_s)
         self._zref = ReferenceGenerator(ReferenceLimits(p.vertical_accel_mps2,
                                                         p.vertical_jerk_mps3))
         self._zref_ok = False
@@ -220,16 +232,23 @@ class LandingPlanner:
         self._l = _Latch()
         self._last_out: PlannerOutput | None = None
 
+    @property
+    def searches(self) -> int:
+        """Search attempts since the last ``start_landing`` (Step 11)."""
+        return self._search.attempts
+
     # --- services (std_srvs/Trigger semantics) ------------------------------------------
+    # A service call comes between steps: the entry actions of the mode it switches to run at
+    # the start of the next step, on that step's inputs (entry_now=False).
     def start_landing(self, t_s: float) -> tuple[bool, str]:
         """Step 1: start the procedure (from IDLE, TAKEOFF or HOLD)."""
         if self.mode in _LANDING_MODES:
             return False, f'already landing (mode {self.mode.name})'
         if self.mode is Mode.LANDED:
             return False, 'landed: take off first'
-        self.searches = 0
+        self._search.reset()
         self._yaw = None            # latch the current heading at the next step
-        self._enter(Mode.APPROACH, t_s, 'start_landing requested (Step 1)')
+        self._switch_to(Mode.APPROACH, t_s, 'start_landing requested (Step 1)', entry_now=False)
         return True, 'landing started'
 
     def abort(self, t_s: float) -> tuple[bool, str]:
@@ -238,7 +257,7 @@ class LandingPlanner:
             return False, f'nothing to abort (mode {self.mode.name})'
         if self.mode is Mode.HOLD:
             return True, 'already holding'
-        self._enter(Mode.HOLD, t_s, f'abort requested in {self.mode.name}')
+        self._switch_to(Mode.HOLD, t_s, f'abort requested in {self.mode.name}', entry_now=False)
         return True, 'aborted: climbing to the approach height and holding'
 
     def takeoff(self, t_s: float) -> tuple[bool, str]:
@@ -246,7 +265,7 @@ class LandingPlanner:
         if self.mode not in (Mode.IDLE, Mode.LANDED):
             return False, f'already airborne (mode {self.mode.name})'
         self._yaw = None
-        self._enter(Mode.TAKEOFF, t_s, 'takeoff requested')
+        self._switch_to(Mode.TAKEOFF, t_s, 'takeoff requested', entry_now=False)
         return True, 'taking off'
 
     # --- main step -----------------------------------------------------------------------
@@ -267,8 +286,6 @@ class LandingPlanner:
         veh_ok = self._read_vehicle(vehicle)
         target_ok, rel = self._read_target(t_s, apron)
         vert_ok, closing = self._read_vertical(apron)
-        lost_for = t_s - self._t_target_ok
-        inputs_ok = veh_ok and vert_ok
 
         if self._pos is None:   # nothing known about the vehicle yet
             return self._emit(t_s, self._placeholder_height(), 0.0, 0.0, True)
@@ -280,39 +297,19 @@ class LandingPlanner:
             self._zref.reset(self._height)
             self._zref_ok = True
         if self._l.entry_pending:
-            self._on_entry(t_s)
+            self._run_entry()
 
-        # --- safe mode on invalid inputs (after a grace period) -------------------------
-        paused = False
-        if inputs_ok:
-            self._l.t_invalid = None
-        elif self.mode in _AIRBORNE_MODES and self._zref_ok:
-            if self._l.t_invalid is None:
-                self._l.t_invalid = t_s
-            if t_s - self._l.t_invalid >= p.invalid_timeout_s:
-                what = 'vertical state' if not vert_ok else 'vehicle state'
-                low = self._height is not None and self._height <= p.final_approach_height_m
-                if self.mode is Mode.FINAL or (self.mode is Mode.DESCEND and low):
-                    self._enter(Mode.FALLBACK, t_s, f'{what} invalid in {self.mode.name}: '
-                                'slow descent where it is (safe mode)')
-                    # "where it is" is the deck: the camera still sees it, so the vehicle
-                    # stays over it (a GPS hold drifts off the pad with the GPS error)
-                    self._l.over_deck = target_ok
-                    self._on_entry(t_s)
-                elif self.mode not in (Mode.HOLD, Mode.FALLBACK, Mode.FINAL):
-                    self._enter(Mode.HOLD, t_s, f'{what} invalid for '
-                                f'{t_s - self._l.t_invalid:.2f} s (safe mode)')
-                    self._on_entry(t_s)
-            paused = self.mode not in (Mode.FINAL, Mode.FALLBACK)
-
-        # --- transitions ------------------------------------------------------------------
+        tk = _Tick(t_s, dt_s, vehicle, apron, veh_ok, target_ok, rel, vert_ok, closing,
+                   t_s - self._t_target_ok)
+        paused = self._safe_mode(tk)
         if not paused:
-            self._transitions(t_s, target_ok, rel, lost_for, vert_ok, closing, vehicle, veh_ok)
+            self._state.run(self, tk)          # transitions of the current mode
 
-        # --- references -------------------------------------------------------------------
+        # --- references of the (new) mode ---------------------------------------------------
         self._update_frame()
-        self._update_horizontal(t_s, dt_s, target_ok, apron)
-        z_target, z_speed = self._vertical_target(target_ok, paused)
+        state = self._state
+        state.horizontal(self, tk)
+        z_target, z_speed = self._stop_here() if paused else state.vertical(self, tk)
         if self._zref_ok:
             self._zref.step(z_target, z_speed, dt_s)
             if vert_ok:
@@ -325,6 +322,33 @@ class LandingPlanner:
         z, zd, zdd = self._zref.state() if self._zref_ok else (
             self._placeholder_height(), 0.0, 0.0)
         return self._emit(t_s, z, zd, zdd, thrust)
+
+    def _safe_mode(self, tk: _Tick) -> bool:
+        """Invalid vehicle or vertical state for ``invalid_timeout_s``: FINAL (and DESCEND below
+        the final-approach height) falls back to a slow descent where it is, the other airborne
+        modes HOLD. True while the transitions and the vertical target are paused."""
+        if tk.veh_ok and tk.vert_ok:
+            self._l.t_invalid = None
+            return False
+        if self.mode not in _AIRBORNE_MODES or not self._zref_ok:
+            return False
+        p = self.params
+        t_s = tk.t_s
+        t_invalid = self._l.t_invalid
+        if t_invalid is None:
+            t_invalid = self._l.t_invalid = t_s
+        if t_s - t_invalid >= p.invalid_timeout_s:
+            what = 'vertical state' if not tk.vert_ok else 'vehicle state'
+            low = self._height is not None and self._height <= p.final_approach_height_m
+            if self.mode is Mode.FINAL or (self.mode is Mode.DESCEND and low):
+                # "where it is" is the deck: the camera still sees it, so the vehicle stays
+                # over it (a GPS hold drifts off the pad with the GPS error)
+                self._switch_to(Mode.FALLBACK, t_s, f'{what} invalid in {self.mode.name}: '
+                                'slow descent where it is (safe mode)', over_deck=tk.target_ok)
+            elif self.mode not in (Mode.HOLD, Mode.FALLBACK, Mode.FINAL):
+                self._switch_to(Mode.HOLD, t_s, f'{what} invalid for '
+                                f'{t_s - t_invalid:.2f} s (safe mode)')
+        return self.mode not in (Mode.FINAL, Mode.FALLBACK)
 
     # --- input handling ------------------------------------------------------------------
     def _read_vehicle(self, vehicle: VehicleState) -> bool:
@@ -388,25 +412,39 @@ class LandingPlanner:
         self._surface = v.surface_height_m
         return True, v.closing_speed_mps
 
-    # --- state machine -------------------------------------------------------------------
-    def _enter(self, mode: Mode, t_s: float, reason: str) -> None:
+    # --- switching -----------------------------------------------------------------------
+    def _switch_to(self, mode: Mode, t_s: float, reason: str, over_deck: bool = False,
+                   entry_now: bool = True) -> None:
+        """Enter ``mode`` for ``reason`` (logged in every output): new bookkeeping (the
+        invalid-input timer carries over), then the mode's entry actions (``entry_now=False``
+        for a service call: at the start of the next step)."""
         t = t_s if _finite(t_s) else (self._t_last or 0.0)
         self.mode = mode
+        self._state = _STATES[mode]
         self.reason = reason
-        latch = _Latch(t_mode=t, t_invalid=self._l.t_invalid)
-        self._l = latch
+        self._l = _Latch(t_mode=t, t_invalid=self._l.t_invalid, over_deck=over_deck)
+        if entry_now:
+            self._run_entry()
+
+    def _run_entry(self) -> None:
+        """Entry actions, in the new mode's vertical frame; they wait (``entry_pending``) for
+        the first step that knows the vehicle position."""
+        pos = self._pos
+        if pos is None:
+            return
+        self._l.entry_pending = False
+        self._update_frame()   # hold heights latched on entry are in the new mode's frame
+        self._state.enter(self, (pos[0], pos[1]))
 
     def _search_or_fallback(self, t_s: float, why: str) -> None:
         """Step 11: search again unless the attempts are used up, then Step 14."""
-        if self.searches < self.params.max_searches:
-            self.searches += 1
-            self._enter(Mode.SEARCH, t_s, f'{why}: search attempt {self.searches} '
-                        f'of {self.params.max_searches} (Steps 11-12)')
+        search = self._search
+        if search.retry():
+            self._switch_to(Mode.SEARCH, t_s, f'{why}: search attempt {search.attempts} '
+                            f'of {search.max_attempts} (Steps 11-12)')
         else:
-            self._enter(Mode.FALLBACK, t_s, f'{why}: {self.searches} search attempts used, '
-                        'landing where it is (Step 14)')
-            self._l.over_deck = self._over_deck()
-        self._on_entry(t_s)
+            self._switch_to(Mode.FALLBACK, t_s, f'{why}: {search.attempts} search attempts '
+                            'used, landing where it is (Step 14)', over_deck=self._over_deck())
 
     def _over_deck(self) -> bool:
         """A tracked, unambiguous beacon right below (camera offset within the re-align
@@ -415,51 +453,10 @@ class LandingPlanner:
         return (self._rel is not None and not self._ambiguous
                 and math.hypot(*self._rel) <= p.acceptance_radius_m * p.acceptance_hysteresis)
 
-    def _on_entry(self, t_s: float) -> None:
-        """Entry actions; run lazily once the vehicle position is known."""
-        if self._pos is None:
-            return
-        p = self.params
-        latch = self._l
-        latch.entry_pending = False
-        mode = self.mode
-        self._update_frame()   # hold heights below are in the new mode's vertical frame
-        here = (self._pos[0], self._pos[1])
-        stop_z = self._zref.stopping_point() if self._zref_ok else p.approach_height_m
-        if mode is Mode.APPROACH:
-            self._start_path(p.landing_area_m)
-        elif mode is Mode.ALIGN:
-            latch.hold_height_m = max(stop_z, p.final_approach_height_m)
-            self._path_active = False
-        elif mode is Mode.SEARCH:
-            lx, ly = p.landing_area_m
-            c = self._last_target or (lx, ly)
-            r = p.search_radius_m
-            latch.waypoints = [c, (c[0] + r, c[1] + r), (c[0] - r, c[1] + r),
-                               (c[0] - r, c[1] - r), (c[0] + r, c[1] - r), c]
-            latch.wp_index = 0
-            self._start_path(c)
-        elif mode in (Mode.HOLD, Mode.TAKEOFF, Mode.FALLBACK):
-            latch.hold_xy = here
-            latch.hold_height_m = max(stop_z, p.approach_height_m)
-            self._path_active = False
-            if mode is Mode.TAKEOFF:
-                latch.hold_height_m = p.approach_height_m
-                if self._height is not None and self._zref_ok:
-                    self._zref.reset(self._height)
-        elif mode is Mode.LANDED:
-            latch.hold_xy = here
-            self._path_active = False
-        elif mode is Mode.IDLE:
-            latch.hold_xy = here
-            latch.hold_height_m = self._height
-
-    def _start_path(self, goal: tuple[float, float]) -> None:
-        start = self._sp
-        if start is None:   # (step() sets the setpoint before any entry action runs)
-            start = (self._pos[0], self._pos[1]) if self._pos is not None else goal
-        self._path.start(start, (float(goal[0]), float(goal[1])), self._ff)
-        self._path_active = True
+    def _check_landed(self, tk: _Tick) -> None:
+        """FINAL, FALLBACK: Step 15 → Step 16."""
+        if self._landed(tk.t_s, tk.vert_ok, tk.closing, tk.vehicle, tk.veh_ok):
+            self._switch_to(Mode.LANDED, tk.t_s, 'landed (Step 15 → Step 16)')
 
     def _landed(self, t_s: float, vert_ok: bool, closing: float, vehicle: VehicleState,
                 veh_ok: bool) -> bool:
@@ -487,81 +484,9 @@ class LandingPlanner:
             self._l.t_landed_cond = t_s
         return t_s - self._l.t_landed_cond >= p.landed_hold_s
 
-    def _transitions(self, t_s: float, target_ok: bool, rel: tuple[float, float],
-                     lost_for: float, vert_ok: bool, closing: float, vehicle: VehicleState,
-                     veh_ok: bool) -> None:
-        p = self.params
-        mode = self.mode
-        latch = self._l
-        dist = math.hypot(rel[0], rel[1])
-        if mode is Mode.APPROACH:
-            if target_ok:
-                self._enter(Mode.ALIGN, t_s, 'target visible (Step 3 → Step 4)')
-                self._on_entry(t_s)
-                return
-            lx, ly = p.landing_area_m
-            pos = self._pos
-            arrived = (self._path.done and pos is not None
-                       and math.hypot(pos[0] - lx, pos[1] - ly) <= p.arrival_radius_m)
-            if not arrived:
-                latch.t_arrived = None
-            elif latch.t_arrived is None:
-                latch.t_arrived = t_s
-            elif t_s - latch.t_arrived >= p.arrival_wait_s:
-                self._search_or_fallback(t_s, 'no target at the landing area (Step 3)')
-        elif mode is Mode.ALIGN:
-            if lost_for > p.target_lost_timeout_s:
-                self._search_or_fallback(t_s, f'target lost for {lost_for:.1f} s in ALIGN')
-                return
-            if target_ok and dist <= p.acceptance_radius_m and not self._ambiguous:
-                if latch.t_in_radius is None:
-                    latch.t_in_radius = t_s
-                if t_s - latch.t_in_radius >= p.acceptance_hold_s:
-                    self._enter(Mode.DESCEND, t_s, f'horizontally close ({dist:.2f} m) for '
-                                f'{p.acceptance_hold_s:.1f} s (Step 5 → Step 6)')
-                    self._on_entry(t_s)
-            else:
-                latch.t_in_radius = None
-        elif mode is Mode.DESCEND:
-            if vert_ok and self._height is not None and self._height <= p.final_approach_height_m:
-                self._enter(Mode.FINAL, t_s, f'vertically close (h = {self._height:.2f} m, '
-                            'Step 9 → Step 10)')
-                self._on_entry(t_s)
-            elif lost_for > p.target_lost_timeout_s:
-                self._search_or_fallback(t_s, f'target lost for {lost_for:.1f} s in DESCEND '
-                                         '(Step 7)')
-            elif target_ok and dist > p.acceptance_radius_m * p.acceptance_hysteresis:
-                self._enter(Mode.ALIGN, t_s, f'drifted {dist:.2f} m off the target: pause '
-                            'the descent and re-align (Step 5 → Step 4)')
-                self._on_entry(t_s)
-            elif target_ok and self._ambiguous:
-                self._enter(Mode.ALIGN, t_s, 'target ambiguous (σ > '
-                            f'{p.max_target_sigma_m:.2f} m, e.g. a false blob beside it): '
-                            'pause the descent and re-align')
-                self._on_entry(t_s)
-        elif mode in (Mode.FINAL, Mode.FALLBACK):
-            if self._landed(t_s, vert_ok, closing, vehicle, veh_ok):
-                self._enter(Mode.LANDED, t_s, 'landed (Step 15 → Step 16)')
-                self._on_entry(t_s)
-        elif mode is Mode.SEARCH:
-            if target_ok:
-                self._enter(Mode.ALIGN, t_s, 'target re-acquired during search (Step 13 → '
-                            'Step 4)')
-                self._on_entry(t_s)
-            elif t_s - latch.t_mode >= p.search_timeout_s:
-                self._search_or_fallback(t_s, f'search attempt {self.searches} timed out '
-                                         '(Step 13)')
-        elif mode is Mode.TAKEOFF and (
-                self._zref_ok and self._height is not None
-                and abs(self._zref.z_m - p.approach_height_m) < 1e-3
-                and abs(self._height - p.approach_height_m) < 0.15):
-            self._enter(Mode.HOLD, t_s, 'takeoff complete')
-            self._on_entry(t_s)
-
-    # --- references ----------------------------------------------------------------------
+    # --- references (shared by the mode handlers) ----------------------------------------
     def _wanted_frame(self) -> str:
-        if (self.params.descent_profile == 'constant_rate'
-                and self.mode in (Mode.DESCEND, Mode.FINAL)):
+        if self.params.descent_profile == 'constant_rate' and self._state.world_ramp:
             return VERTICAL_WORLD_RATE
         return VERTICAL_RELATIVE
 
@@ -580,45 +505,6 @@ class LandingPlanner:
             self._world_floor_m = (self._surface + self.params.gear_height_m
                                    - self.params.final_press_m - 3.0)
         self._vframe = want
-
-    def _vertical_target(self, target_ok: bool, paused: bool) -> tuple[float, float]:
-        p = self.params
-        mode = self.mode
-        latch = self._l
-        if paused:
-            return self._stop_here()
-        contact = p.gear_height_m - p.final_press_m
-        if self._vframe == VERTICAL_WORLD_RATE:
-            # deck-blind ramp toward a floor below the surface at a constant world rate
-            return self._world_floor_m, p.constant_rate_mps
-        if mode is Mode.APPROACH:
-            return p.approach_height_m, p.vertical_speed_mps
-        if mode is Mode.ALIGN:
-            return self._held_height(), p.vertical_speed_mps
-        if mode is Mode.DESCEND:
-            if not target_ok:
-                return self._stop_here()   # momentarily not seen: hold height, timer runs on
-            margin = min(0.2, 0.5 * (p.final_approach_height_m - p.gear_height_m))
-            return p.final_approach_height_m - margin, p.descent_speed_mps
-        if mode is Mode.FINAL:
-            return contact, p.final_speed_mps
-        if mode is Mode.FALLBACK:
-            fast = self._zref.z_m > p.final_approach_height_m
-            return contact, p.fallback_speed_mps if fast else p.final_speed_mps
-        if mode is Mode.SEARCH:
-            return p.search_height_m, p.vertical_speed_mps
-        if mode in (Mode.HOLD, Mode.TAKEOFF):
-            return self._held_height(), p.vertical_speed_mps
-        if mode is Mode.IDLE:
-            if not self._zref_ok:
-                # no valid height yet: nothing to hold. Latching the uninitialised reference
-                # (0 m) here made the vehicle sink to the ground when OFFBOARD engaged.
-                return self._placeholder_height(), p.vertical_speed_mps
-            if latch.hold_height_m is None:
-                latch.hold_height_m = self._zref.z_m
-            return latch.hold_height_m, p.vertical_speed_mps
-        # LANDED: come to rest where the reference is
-        return self._stop_here()
 
     def _leash(self) -> None:
         """Final descent: the reference never runs more than ``final_leash_m`` below h.
@@ -669,50 +555,52 @@ class LandingPlanner:
         return (self._zref.stopping_point() if self._zref_ok else 0.0,
                 self.params.vertical_speed_mps)
 
-    def _update_horizontal(self, t_s: float, dt_s: float, target_ok: bool,
-                           apron: ApronState) -> None:
-        p = self.params
-        mode = self.mode
-        latch = self._l
-        if mode in (Mode.ALIGN, Mode.DESCEND, Mode.FINAL) or (
-                mode is Mode.FALLBACK and latch.over_deck):
-            if target_ok or (mode is Mode.FALLBACK and self._rel is not None):
-                ax, ay = apron.apron_position_m
-                fx, fy = apron.apron_velocity_mps
-                # slew toward the target: move with the deck, close the gap at align_speed
-                sx, sy = self._sp if self._sp is not None else (ax, ay)   # (set by step())
-                px, py = sx + fx * dt_s, sy + fy * dt_s
-                ex, ey = ax - px, ay - py
-                n = math.hypot(ex, ey)
-                lim = p.align_speed_mps * dt_s
-                if n > lim:
-                    ex, ey = ex * lim / n, ey * lim / n
-                self._sp = (px + ex, py + ey)
-                self._ff = (fx, fy)
-            else:   # hold the last setpoint (FINAL continues blind)
-                self._ff = (0.0, 0.0)
-            return
-        if mode in (Mode.APPROACH, Mode.SEARCH) and self._path_active:
-            speed = p.approach_speed_mps if mode is Mode.APPROACH else p.search_speed_mps
-            self._sp, self._ff = self._path.step(speed, dt_s)
-            if mode is Mode.SEARCH and self._path.done:
-                self._next_waypoint(t_s)
-            return
-        if latch.hold_xy is not None:
-            self._sp = latch.hold_xy
+    def _world_ramp(self) -> tuple[float, float]:
+        """Deck-blind ramp toward a floor below the surface at a constant world rate."""
+        return self._world_floor_m, self.params.constant_rate_mps
+
+    def _stop_z(self) -> float:
+        """Entry actions: where the reference would come to rest (approach height if none)."""
+        return self._zref.stopping_point() if self._zref_ok else self.params.approach_height_m
+
+    def _hold_position(self) -> None:
+        """Horizontal: the position latched on entry, no feed-forward."""
+        if self._l.hold_xy is not None:
+            self._sp = self._l.hold_xy
         self._ff = (0.0, 0.0)
 
-    def _next_waypoint(self, t_s: float) -> None:
-        """Search pattern: hover at the centre for search_hold_s, then fly the square."""
-        latch = self._l
-        if latch.wp_index == 0:
-            if latch.t_wp_reached is None:
-                latch.t_wp_reached = t_s
-            if t_s - latch.t_wp_reached < self.params.search_hold_s:
-                return
-        latch.t_wp_reached = None
-        latch.wp_index = (latch.wp_index + 1) % len(latch.waypoints)
-        self._start_path(latch.waypoints[latch.wp_index])
+    def _fly_path(self, speed_mps: float, dt_s: float) -> bool:
+        """Horizontal: along the active path (False, position held, when none is active)."""
+        if not self._path_active:
+            self._hold_position()
+            return False
+        self._sp, self._ff = self._path.step(speed_mps, dt_s)
+        return True
+
+    def _track_deck(self, apron: ApronState, seen: bool, dt_s: float) -> None:
+        """Horizontal: slew toward the target, moving with the deck and closing the gap at
+        ``align_speed_mps``; not seen: hold the last setpoint (FINAL continues blind)."""
+        if not seen:
+            self._ff = (0.0, 0.0)
+            return
+        ax, ay = apron.apron_position_m
+        fx, fy = apron.apron_velocity_mps
+        sx, sy = self._sp if self._sp is not None else (ax, ay)   # (set by step())
+        px, py = sx + fx * dt_s, sy + fy * dt_s
+        ex, ey = ax - px, ay - py
+        n = math.hypot(ex, ey)
+        lim = self.params.align_speed_mps * dt_s
+        if n > lim:
+            ex, ey = ex * lim / n, ey * lim / n
+        self._sp = (px + ex, py + ey)
+        self._ff = (fx, fy)
+
+    def _start_path(self, goal: tuple[float, float]) -> None:
+        start = self._sp
+        if start is None:   # (step() sets the setpoint before any entry action runs)
+            start = (self._pos[0], self._pos[1]) if self._pos is not None else goal
+        self._path.start(start, (float(goal[0]), float(goal[1])), self._ff)
+        self._path_active = True
 
     # --- output --------------------------------------------------------------------------
     def _placeholder_height(self) -> float:
@@ -752,3 +640,251 @@ class LandingPlanner:
             z_d_dot_mps=0.0, z_d_ddot_mps2=0.0,
             thrust_enabled=self.mode not in (Mode.IDLE, Mode.LANDED),
             searches=self.searches, reason=self.reason, vertical_mode=self._vframe)
+
+
+# --- one handler per mode ------------------------------------------------------------------
+# step() calls, in this order: run() of the current mode (its guarded transitions; skipped
+# while the inputs are invalid), then horizontal() and vertical() of the mode it is in after
+# them. _switch_to() calls enter().
+
+
+class _State:
+    """A mode of the machine: entry actions, transitions, horizontal and vertical reference."""
+
+    def __init__(self, world_ramp: bool = False) -> None:
+        # the constant_rate profile flies this mode on a world-altitude ramp (DESCEND, FINAL)
+        self.world_ramp = world_ramp
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        """Entry actions (``here``: the vehicle's horizontal position)."""
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        """Guarded transitions out of this mode."""
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        """Setpoint and feed-forward; by default the position latched on entry."""
+        pl._hold_position()
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        """(target, speed) of the vertical reference; by default the height latched on entry."""
+        return pl._held_height(), pl.params.vertical_speed_mps
+
+
+class _Idle(_State):
+    """IDLE: before a start; holds where it is, thrust off on the ground (step())."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._l.hold_xy = here
+        pl._l.hold_height_m = pl._height
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        speed = pl.params.vertical_speed_mps
+        if not pl._zref_ok:
+            # no valid height yet: nothing to hold. Latching the uninitialised reference
+            # (0 m) here made the vehicle sink to the ground when OFFBOARD engaged.
+            return pl._placeholder_height(), speed
+        latch = pl._l
+        if latch.hold_height_m is None:
+            latch.hold_height_m = pl._zref.z_m
+        return latch.hold_height_m, speed
+
+
+class _Takeoff(_State):
+    """TAKEOFF: climb over the current position to the approach height, then HOLD."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._l.hold_xy = here
+        pl._l.hold_height_m = pl.params.approach_height_m
+        pl._path_active = False
+        if pl._height is not None and pl._zref_ok:
+            pl._zref.reset(pl._height)
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        target = pl.params.approach_height_m
+        h = pl._height
+        if (pl._zref_ok and h is not None and abs(pl._zref.z_m - target) < 1e-3
+                and abs(h - target) < 0.15):
+            pl._switch_to(Mode.HOLD, tk.t_s, 'takeoff complete')
+
+
+class _Approach(_State):
+    """APPROACH (Step 2): the straight line to the landing area at the approach height."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._start_path(pl.params.landing_area_m)
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        if tk.target_ok:
+            pl._switch_to(Mode.ALIGN, tk.t_s, 'target visible (Step 3 → Step 4)')
+            return
+        p = pl.params
+        latch = pl._l
+        lx, ly = p.landing_area_m
+        pos = pl._pos
+        arrived = (pl._path.done and pos is not None
+                   and math.hypot(pos[0] - lx, pos[1] - ly) <= p.arrival_radius_m)
+        if not arrived:
+            latch.t_arrived = None
+        elif latch.t_arrived is None:
+            latch.t_arrived = tk.t_s
+        elif tk.t_s - latch.t_arrived >= p.arrival_wait_s:
+            pl._search_or_fallback(tk.t_s, 'no target at the landing area (Step 3)')
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        pl._fly_path(pl.params.approach_speed_mps, tk.dt_s)
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        return pl.params.approach_height_m, pl.params.vertical_speed_mps
+
+
+class _Align(_State):
+    """ALIGN (Steps 3-5): over the deck at the entry height until inside the radius."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._l.hold_height_m = max(pl._stop_z(), pl.params.final_approach_height_m)
+        pl._path_active = False
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        p = pl.params
+        if tk.lost_for > p.target_lost_timeout_s:
+            pl._search_or_fallback(tk.t_s, f'target lost for {tk.lost_for:.1f} s in ALIGN')
+            return
+        latch = pl._l
+        dist = math.hypot(tk.rel[0], tk.rel[1])
+        if tk.target_ok and dist <= p.acceptance_radius_m and not pl._ambiguous:
+            if latch.t_in_radius is None:
+                latch.t_in_radius = tk.t_s
+            if tk.t_s - latch.t_in_radius >= p.acceptance_hold_s:
+                pl._switch_to(Mode.DESCEND, tk.t_s, f'horizontally close ({dist:.2f} m) for '
+                              f'{p.acceptance_hold_s:.1f} s (Step 5 → Step 6)')
+        else:
+            latch.t_in_radius = None
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        pl._track_deck(tk.apron, tk.target_ok, tk.dt_s)
+
+
+class _Descend(_State):
+    """DESCEND (Steps 6-7, "8", 9): descend over the deck to the final-approach height."""
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        p = pl.params
+        h = pl._height
+        dist = math.hypot(tk.rel[0], tk.rel[1])
+        if tk.vert_ok and h is not None and h <= p.final_approach_height_m:
+            pl._switch_to(Mode.FINAL, tk.t_s, f'vertically close (h = {h:.2f} m, '
+                          'Step 9 → Step 10)')
+        elif tk.lost_for > p.target_lost_timeout_s:
+            pl._search_or_fallback(tk.t_s, f'target lost for {tk.lost_for:.1f} s in DESCEND '
+                                   '(Step 7)')
+        elif tk.target_ok and dist > p.acceptance_radius_m * p.acceptance_hysteresis:
+            pl._switch_to(Mode.ALIGN, tk.t_s, f'drifted {dist:.2f} m off the target: pause '
+                          'the descent and re-align (Step 5 → Step 4)')
+        elif tk.target_ok and pl._ambiguous:
+            pl._switch_to(Mode.ALIGN, tk.t_s, 'target ambiguous (σ > '
+                          f'{p.max_target_sigma_m:.2f} m, e.g. a false blob beside it): '
+                          'pause the descent and re-align')
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        pl._track_deck(tk.apron, tk.target_ok, tk.dt_s)
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        if pl._vframe == VERTICAL_WORLD_RATE:
+            return pl._world_ramp()
+        if not tk.target_ok:
+            return pl._stop_here()   # momentarily not seen: hold height, timer runs on
+        p = pl.params
+        margin = min(0.2, 0.5 * (p.final_approach_height_m - p.gear_height_m))
+        return p.final_approach_height_m - margin, p.descent_speed_mps
+
+
+class _Final(_State):
+    """FINAL (Steps 9-10): the final descent relative to the deck, leashed, blind if need be."""
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        pl._check_landed(tk)
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        pl._track_deck(tk.apron, tk.target_ok, tk.dt_s)
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        if pl._vframe == VERTICAL_WORLD_RATE:
+            return pl._world_ramp()
+        p = pl.params
+        return p.gear_height_m - p.final_press_m, p.final_speed_mps
+
+
+class _Search(_State):
+    """SEARCH (Steps 11-13): at the search height, fly the pattern until the target shows."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        lx, ly = pl.params.landing_area_m
+        pl._start_path(pl._search.begin(pl._last_target or (lx, ly)))
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        if tk.target_ok:
+            pl._switch_to(Mode.ALIGN, tk.t_s, 'target re-acquired during search (Step 13 → '
+                          'Step 4)')
+        elif tk.t_s - pl._l.t_mode >= pl.params.search_timeout_s:
+            pl._search_or_fallback(tk.t_s, f'search attempt {pl.searches} timed out '
+                                   '(Step 13)')
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        if pl._fly_path(pl.params.search_speed_mps, tk.dt_s) and pl._path.done:
+            goal = pl._search.next_goal(tk.t_s)
+            if goal is not None:
+                pl._start_path(goal)
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        return pl.params.search_height_m, pl.params.vertical_speed_mps
+
+
+class _Fallback(_State):
+    """FALLBACK (Step 14, safe mode): land where it is, relative to the surface below."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._l.hold_xy = here
+        pl._path_active = False
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        pl._check_landed(tk)
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        if pl._l.over_deck:   # follow the deck, even a beacon outside the area gate
+            pl._track_deck(tk.apron, tk.target_ok or pl._rel is not None, tk.dt_s)
+        else:
+            pl._hold_position()
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        p = pl.params
+        fast = pl._zref.z_m > p.final_approach_height_m
+        speed = p.fallback_speed_mps if fast else p.final_speed_mps
+        return p.gear_height_m - p.final_press_m, speed
+
+
+class _Hold(_State):
+    """HOLD (abort, invalid inputs, takeoff complete): hover at the approach height or above."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._l.hold_xy = here
+        pl._l.hold_height_m = max(pl._stop_z(), pl.params.approach_height_m)
+        pl._path_active = False
+
+
+class _Landed(_State):
+    """LANDED (Steps 15-16): on the deck, thrust off; the reference brakes to rest."""
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._l.hold_xy = here
+        pl._path_active = False
+
+    def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
+        return pl._stop_here()
+
+
+_STATES: dict[Mode, _State] = {
+    Mode.IDLE: _Idle(), Mode.TAKEOFF: _Takeoff(), Mode.APPROACH: _Approach(),
+    Mode.ALIGN: _Align(), Mode.DESCEND: _Descend(world_ramp=True),
+    Mode.FINAL: _Final(world_ramp=True), Mode.SEARCH: _Search(), Mode.FALLBACK: _Fallback(),
+    Mode.HOLD: _Hold(), Mode.LANDED: _Landed(),
+}

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
+import struct
 
 from deckland_common.frames import (
     euler_enu_flu_to_ned_frd,
@@ -292,18 +293,38 @@ def distance_sensor_to_range_m(current_distance_cm: int, min_distance_cm: int,
                                max_distance_cm: int, orientation: int,
                                want_orientation: int = MAV_SENSOR_ROTATION_PITCH_270
                                ) -> float | None:
-    """DISTANCE_SENSOR → range in metres, or None (not the downward sensor, or no valid return).
-
-    A reading outside [min_distance, max_distance] is "no return" (ArduPilot sends max+1 cm,
-    PX4 may send 0 or max). None is published as +inf on ``vehicle/range`` (REP-117).
-    """
+    """DISTANCE_SENSOR → range in metres, or None (not the downward sensor, or no valid
+    return); :func:`distance_sensor_to_rep117` says which kind of invalid."""
     if orientation != want_orientation:
         return None
-    if current_distance_cm <= 0 or current_distance_cm < min_distance_cm:
-        return None
-    if max_distance_cm > 0 and current_distance_cm >= max_distance_cm:
-        return None
-    return current_distance_cm * 0.01
+    r = distance_sensor_to_rep117(current_distance_cm, min_distance_cm, max_distance_cm)
+    return r if math.isfinite(r) else None
+
+
+def distance_sensor_to_rep117(current_distance_cm: int, min_distance_cm: int,
+                              max_distance_cm: int) -> float:
+    """DISTANCE_SENSOR distances (cm) → ``sensor_msgs/Range.range`` as REP-117 defines it.
+
+    * a reading at or below ``min_distance`` (0 included) is **too close**: ``-inf``. PX4's
+      SIH lidar reads 0 cm on the ground (v1.16 SITL, measured); the gear resting on a deck
+      is the same case on hardware;
+    * a reading beyond ``max_distance`` (ArduPilot sends max + 1 cm, PX4 may send max) or
+      UINT16_MAX ("unknown") is **no return**: ``+inf``;
+    * PX4 casts ``current_distance`` (float metres × 100) to uint16, so a slightly negative
+      simulated reading arrives wrapped (65531 = −5 cm, measured after an SIH landing): a
+      value ≥ 0x8000 when ``max_distance`` < 0x8000 cannot be a far reading and is a
+      negative one, ``-inf``.
+    """
+    c, lo, hi = int(current_distance_cm), int(min_distance_cm), int(max_distance_cm)
+    if c == 0xFFFF:
+        return math.inf
+    if 0 < hi < 0x8000 <= c:
+        return -math.inf          # a wrapped negative reading
+    if c <= 0 or c <= lo:
+        return -math.inf
+    if hi > 0 and c >= hi:
+        return math.inf
+    return c * 0.01
 
 
 def range_m_to_distance_cm(range_m: float | None, max_distance_cm: int) -> int:
@@ -354,12 +375,50 @@ def landed_from_extended_sys_state(landed_state: int) -> bool | None:
     return None
 
 
+# --- parameters ----------------------------------------------------------------------------
+
+#: MAV_PARAM_TYPE integer types (UINT8 … INT64); 9 = REAL32, 10 = REAL64
+_PARAM_INT_TYPES = {1: '<B', 2: '<b', 3: '<H', 4: '<h', 5: '<I', 6: '<i'}
+MAV_PARAM_TYPE_REAL32 = 9
+
+
+def param_value_from_wire(param_value: float, param_type: int, bytewise: bool) -> float:
+    """PARAM_VALUE.param_value → the parameter's value.
+
+    PX4 encodes integer parameters *bytewise* (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE):
+    the int's bytes are sent as the float's bytes, so ``MPC_USE_HTE = 1`` (INT32) arrives as
+    1.4e-45 (measured, v1.16 SITL). ArduPilot casts the integer to a float instead
+    (``bytewise = False``). A non-finite float parameter stays as it is (the caller rejects
+    it)."""
+    fmt = _PARAM_INT_TYPES.get(int(param_type))
+    if not bytewise or fmt is None:
+        return float(param_value)
+    raw = struct.pack('<f', param_value)    # (an int like -1 is a NaN pattern: kept as bits)
+    return float(struct.unpack(fmt, raw[:struct.calcsize(fmt)])[0])
+
+
+def param_value_to_wire(value: float, param_type: int, bytewise: bool) -> float:
+    """Inverse of :func:`param_value_from_wire` (for the emulated autopilot's PARAM_VALUE)."""
+    fmt = _PARAM_INT_TYPES.get(int(param_type))
+    if not bytewise or fmt is None:
+        return float(value)
+    raw = struct.pack(fmt, int(value)).ljust(4, b'\0')
+    return float(struct.unpack('<f', raw)[0])
+
+
 # --- modes ---------------------------------------------------------------------------------
 
+#: PX4 v1.16 ``PX4_CUSTOM_MAIN_MODE`` (px4_custom_mode.h); 9 is reserved (SIMPLE)
 PX4_MAIN_MODES = {1: 'MANUAL', 2: 'ALTCTL', 3: 'POSCTL', 4: 'AUTO', 5: 'ACRO', 6: 'OFFBOARD',
-                  7: 'STABILIZED', 8: 'RATTITUDE'}
+                  7: 'STABILIZED', 8: 'RATTITUDE', 10: 'TERMINATION', 11: 'ALTITUDE_CRUISE'}
+#: PX4 v1.16 ``PX4_CUSTOM_SUB_MODE_AUTO`` (7 was RTGS, reserved since 2020); 11-18 are the
+#: external (ROS 2 / MAVLink-registered) modes 1-8
 PX4_AUTO_SUB_MODES = {1: 'READY', 2: 'TAKEOFF', 3: 'LOITER', 4: 'MISSION', 5: 'RTL',
-                      6: 'LAND', 8: 'FOLLOW_TARGET', 9: 'PRECLAND'}
+                      6: 'LAND', 7: 'RESERVED', 8: 'FOLLOW_TARGET', 9: 'PRECLAND',
+                      10: 'VTOL_TAKEOFF', **{10 + k: f'EXTERNAL{k}' for k in range(1, 9)}}
+#: PX4 ``COM_OBL_RC_ACT`` (offboard-loss action) values → names
+PX4_OFFBOARD_LOSS_ACTIONS = {0: 'position', 1: 'altitude', 2: 'manual', 3: 'return',
+                             4: 'land', 5: 'hold', 6: 'terminate', 7: 'disarm'}
 ARDUCOPTER_MODES = {0: 'STABILIZE', 1: 'ACRO', 2: 'ALT_HOLD', 3: 'AUTO', 4: 'GUIDED',
                     5: 'LOITER', 6: 'RTL', 7: 'CIRCLE', 9: 'LAND', 11: 'DRIFT', 13: 'SPORT',
                     14: 'FLIP', 15: 'AUTOTUNE', 16: 'POSHOLD', 17: 'BRAKE', 18: 'THROW',
@@ -374,7 +433,9 @@ def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
 
 
 def px4_mode_name(custom_mode: int) -> str:
-    """PX4 HEARTBEAT.custom_mode → 'OFFBOARD', 'POSCTL', 'AUTO.LAND', ... ('UNKNOWN(n)')."""
+    """PX4 HEARTBEAT.custom_mode → 'OFFBOARD', 'POSCTL', 'AUTO.LAND', 'TERMINATION', ...
+    ('UNKNOWN(n)' for a main mode PX4 v1.16 does not define, 'AUTO.<n>' for an unknown
+    AUTO sub-mode)."""
     main = (custom_mode >> 16) & 0xFF
     sub = (custom_mode >> 24) & 0xFF
     name = PX4_MAIN_MODES.get(main)

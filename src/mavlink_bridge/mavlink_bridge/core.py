@@ -13,12 +13,15 @@ what the core returns. The core decides:
   ``max_stream_rate_hz``, depth ``stream_burst``) is empty; a command whose source stamp is at
   least ``fresh_period_s`` (one camera period) newer than the last one sent is sent even then
   (:class:`StreamLimiter`);
-* the offboard entry sequence: OFFBOARD (PX4) / GUIDED_NOGPS (ArduPilot) is requested only after
-  setpoints have streamed continuously (gaps < ``max_stream_gap_s``, i.e. > 2 Hz) for
-  ``offboard_warmup_s`` (> 1 s, as PX4 requires);
+* the offboard entry sequence: OFFBOARD (PX4) / GUIDED_NOGPS (ArduPilot) is requested only
+  while setpoints flow (for ``offboard_warmup_s``; PX4 v1.16 itself needs one setpoint younger
+  than ``COM_OF_LOSS_T``) and, on PX4, only once the autopilot's offboard-loss action
+  (``COM_OBL_RC_ACT``), ``COM_OF_LOSS_T`` and the hover thrust are known and safe;
 * arming and mode requests with retries until the HEARTBEAT confirms them, COMMAND_ACK
-  handling, and the disarm when ``control/enabled`` goes False;
-* periodic MAV_CMD_SET_MESSAGE_INTERVAL requests for the telemetry it needs.
+  handling as PX4 sends it (two ACKs per DO_SET_MODE; a disarm refused in the air waits for
+  the land detector), and the disarm when ``control/enabled`` goes False;
+* periodic MAV_CMD_SET_MESSAGE_INTERVAL requests for the telemetry it needs, and (``trim``)
+  interval −1 for every other stream the autopilot sends on this link.
 
 Bad input (NaN/inf, zero quaternions, out-of-order stamps) is counted in :attr:`rejected` and
 never changes the state.
@@ -26,21 +29,25 @@ never changes the state.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import math
 
 from deckland_common.frames import quaternion_to_euler
 
 from mavlink_bridge.conversions import (
     MAV_MODE_FLAG_SAFETY_ARMED,
+    MAV_PARAM_TYPE_REAL32,
+    PX4_OFFBOARD_LOSS_ACTIONS,
     ThrustCalibration,
     do_set_mode_params,
     euler_enu_to_quat_ned,
     landed_from_extended_sys_state,
     mode_name,
+    param_value_from_wire,
     quat_enu_flu_to_ned_frd,
     quat_normalize,
 )
+from mavlink_bridge.monitors import HoverThrustEstimator, SetpointStats
 
 MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -48,13 +55,20 @@ MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_TEMPORARILY_REJECTED = 1
+MAV_RESULT_FAILED = 4
 MAV_RESULT_IN_PROGRESS = 5
 MAV_AUTOPILOT_INVALID = 8
 MAV_TYPE_GCS = 6
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 
 MSG_ID = {'HEARTBEAT': 0, 'SCALED_IMU': 26, 'ATTITUDE': 30, 'LOCAL_POSITION_NED': 32,
-          'HIGHRES_IMU': 105, 'DISTANCE_SENSOR': 132, 'EXTENDED_SYS_STATE': 245}
+          'ATTITUDE_TARGET': 83, 'HIGHRES_IMU': 105, 'DISTANCE_SENSOR': 132,
+          'EXTENDED_SYS_STATE': 245}
+#: messages that are never trimmed: protocol traffic (answers, parameters, time sync, the
+#: autopilot's reasons — STATUSTEXT and PX4's EVENT / CURRENT_EVENT_SEQUENCE), not streams
+KEEP_MSG_IDS = frozenset({0, 22, 77, 111, 253, 410, 411, 413})
+#: the PX4 parameters the bridge reads before OFFBOARD (see :meth:`BridgeCore.px4_config_problem`)
+PX4_PARAMS = ('COM_OBL_RC_ACT', 'COM_OF_LOSS_T', 'MPC_THR_HOVER')
 #: ArduCopter GUID_OPTIONS bit 3 (value 8): SET_ATTITUDE_TARGET.thrust is thrust, not climb rate.
 GUID_OPTIONS_THRUST_BIT = 8
 
@@ -69,7 +83,7 @@ class BridgeParams:
     max_stream_rate_hz: float = 250.0      # long-term SET_ATTITUDE_TARGET cap (bucket refill)
     stream_burst: int = 3                  # setpoints allowed back to back (bucket depth)
     fresh_period_s: float = 0.02           # source stamp this much newer: always sent (50 Hz)
-    offboard_warmup_s: float = 1.2         # streaming time before the mode request (> 1 s)
+    offboard_warmup_s: float = 0.2         # streaming time before the mode request
     max_stream_gap_s: float = 0.5          # larger gaps restart the warm-up (2 Hz minimum)
     heartbeat_period_s: float = 1.0
     command_retry_s: float = 0.5
@@ -80,8 +94,19 @@ class BridgeParams:
     distance_sensor_rate_hz: float = 50.0
     imu_rate_hz: float = 100.0
     extended_sys_state_rate_hz: float = 5.0
+    attitude_target_rate_hz: float = 10.0  # PX4 ATTITUDE_TARGET (hover-thrust measurement)
     use_highres_imu: bool = True           # HIGHRES_IMU, else SCALED_IMU
     target_component: int = 1              # autopilot component id (MAV_COMP_ID_AUTOPILOT1)
+    #: PX4 COM_OBL_RC_ACT values (by name) OFFBOARD may be entered with: what PX4 does when the
+    #: setpoints stop (PX4_OFFBOARD_LOSS_ACTIONS); unknown counts as unsafe
+    offboard_loss_actions: tuple[str, ...] = ('land', 'hold')
+    max_offboard_loss_timeout_s: float = 2.0   # PX4 COM_OF_LOSS_T above this: refuse OFFBOARD
+    #: 'autopilot': PX4's own hover (ATTITUDE_TARGET in its hover, else MPC_THR_HOVER);
+    #: 'parameter': thrust.hover_thrust_norm as configured
+    hover_thrust_source: str = 'autopilot'
+    hover_window_s: float = 4.0            # steady-hover window of the measurement
+    trim_telemetry: bool = True            # SET_MESSAGE_INTERVAL -1 for unused streams
+    param_retry_s: float = 2.0             # PARAM_REQUEST_READ repeated until answered
     link_monitor: LinkMonitorParams = field(default_factory=lambda: LinkMonitorParams())
     thrust: ThrustCalibration = field(default_factory=ThrustCalibration)
 
@@ -90,16 +115,28 @@ class BridgeParams:
             raise ValueError(f"BridgeParams.autopilot = {self.autopilot!r}: must be 'px4' or "
                              "'ardupilot'")
         for name in ('input_timeout_s', 'link_timeout_s', 'max_stream_rate_hz', 'fresh_period_s',
-                     'offboard_warmup_s', 'max_stream_gap_s', 'heartbeat_period_s',
+                     'max_stream_gap_s', 'heartbeat_period_s',
                      'command_retry_s', 'command_timeout_s', 'interval_refresh_s',
                      'attitude_rate_hz', 'local_position_rate_hz', 'distance_sensor_rate_hz',
-                     'imu_rate_hz', 'extended_sys_state_rate_hz'):
+                     'imu_rate_hz', 'extended_sys_state_rate_hz', 'attitude_target_rate_hz',
+                     'max_offboard_loss_timeout_s', 'hover_window_s', 'param_retry_s'):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f'BridgeParams.{name} = {v!r}: must be a finite number > 0')
-        if self.offboard_warmup_s <= 1.0:
-            raise ValueError(f'BridgeParams.offboard_warmup_s = {self.offboard_warmup_s!r}: '
-                             'must be > 1 s (PX4 needs > 1 s of setpoints before OFFBOARD)')
+        w = self.offboard_warmup_s
+        if isinstance(w, bool) or not isinstance(w, int | float) or not math.isfinite(w) \
+                or not 0.0 <= w < self.command_timeout_s:
+            raise ValueError(f'BridgeParams.offboard_warmup_s = {w!r}: must be in [0, '
+                             f'command_timeout_s = {self.command_timeout_s!r}) (PX4 v1.16 '
+                             'needs one setpoint younger than COM_OF_LOSS_T)')
+        acts = self.offboard_loss_actions
+        if not isinstance(acts, tuple) or not all(
+                a in PX4_OFFBOARD_LOSS_ACTIONS.values() for a in acts):
+            raise ValueError(f'BridgeParams.offboard_loss_actions = {acts!r}: must be a tuple '
+                             f'of {sorted(PX4_OFFBOARD_LOSS_ACTIONS.values())}')
+        if self.hover_thrust_source not in ('autopilot', 'parameter'):
+            raise ValueError(f'BridgeParams.hover_thrust_source = {self.hover_thrust_source!r}:'
+                             " must be 'autopilot' or 'parameter'")
         if isinstance(self.stream_burst, bool) or not isinstance(self.stream_burst, int) or \
                 not 1 <= self.stream_burst <= 100:
             raise ValueError(f'BridgeParams.stream_burst = {self.stream_burst!r}: must be an '
@@ -350,24 +387,36 @@ class LinkMonitor:
 
 
 class _Request:
-    """A pending arm/mode request, retried until the HEARTBEAT confirms it or it times out."""
+    """A pending arm/mode request, retried until the HEARTBEAT confirms it or it times out.
 
-    __slots__ = ('last_sent_s', 'start_s', 'value')
+    ``acks`` counts the COMMAND_ACKs since the last send (PX4 answers a DO_SET_MODE twice:
+    the MAVLink receiver's ACCEPTED at once, then the commander's verdict); ``accepted`` is
+    set by an accepting verdict (no more sends, the HEARTBEAT confirms); ``deferred`` is set
+    when PX4 refused a disarm as TEMPORARILY_REJECTED (in the air): it is sent again only
+    once the land detector says landed."""
+
+    __slots__ = ('accepted', 'acks', 'deferred', 'last_sent_s', 'sends', 'start_s', 'value')
 
     def __init__(self, t_s: float, value: object) -> None:
         self.start_s = t_s
         self.last_sent_s = -math.inf
         self.value = value
+        self.acks = 0
+        self.sends = 0
+        self.accepted = False
+        self.deferred = False
 
 
 class BridgeCore:
     """Time-driven bridge logic. All methods take the receive/now time ``t_s``.
 
     Inputs: :meth:`on_heartbeat`, :meth:`on_command_ack`, :meth:`on_param_value`,
-    :meth:`on_extended_sys_state`, :meth:`on_attitude_command`, :meth:`on_thrust_command`,
-    :meth:`on_enabled`, :meth:`request_arm`, :meth:`request_offboard`.
+    :meth:`on_extended_sys_state`, :meth:`on_message`, :meth:`on_attitude_target`,
+    :meth:`on_attitude_command`, :meth:`on_thrust_command`, :meth:`on_enabled`,
+    :meth:`request_arm`, :meth:`request_offboard`.
     Outputs: :meth:`on_thrust_command` returns the :class:`AttitudeSetpoint` to send (or None);
-    :meth:`step` returns the :class:`Outgoing` messages due now.
+    :meth:`step` returns the :class:`Outgoing` messages due now; :meth:`stream_diagnostics`
+    the setpoint rate and gaps.
     """
 
     def __init__(self, params: BridgeParams | None = None) -> None:
@@ -377,8 +426,11 @@ class BridgeCore:
         self.counters: dict[str, int] = {'setpoints_sent': 0, 'rate_limited': 0,
                                          'stale_attitude': 0, 'disabled': 0, 'no_link': 0,
                                          'heartbeats_rx': 0, 'commands_sent': 0,
-                                         'link_degraded': 0}
+                                         'link_degraded': 0, 'trim_requests': 0,
+                                         'disarm_deferred': 0}
         self.link_monitor = LinkMonitor(self.params.link_monitor)
+        self.setpoint_stats = SetpointStats()
+        self.hover = HoverThrustEstimator(window_s=self.params.hover_window_s)
         self.reset()
 
     def reset(self) -> None:
@@ -401,15 +453,21 @@ class BridgeCore:
         self._att_q_ned = (1.0, 0.0, 0.0, 0.0)
         self._att_euler = (0.0, 0.0, 0.0)
         self.enabled = True
-        # stream
+        # stream (the calibration in use: chosen at each OFFBOARD request, see hover_source)
         self._limiter = StreamLimiter(self.params.max_stream_rate_hz, self.params.stream_burst,
                                       self.params.fresh_period_s)
         self._last_sent_s = -math.inf
         self._stream_start_s = math.inf
+        self.thrust: ThrustCalibration = self.params.thrust
+        self.hover_source = 'parameter'
+        self.hover.reset()
         # periodic
         self._last_hb_tx_s = -math.inf
         self._last_interval_s = -math.inf
         self._last_param_req_s = -math.inf
+        self._seen_ids: set[int] = set()
+        self._trimmed: dict[int, int] = {}      # message id → trim requests sent
+        self._last_trim_s = -math.inf
         self._offboard: _Request | None = None
         self._arm: _Request | None = None
         self.last_result = ''
@@ -437,7 +495,14 @@ class BridgeCore:
             self.rejected['out_of_order' if math.isfinite(t_s) else 'nan'] += 1
             return False
         if not self.link_up(t_s):
-            self._last_interval_s = -math.inf  # (re)connected: ask for telemetry again
+            # (re)connected, perhaps to a rebooted autopilot: ask for telemetry again, read
+            # its parameters afresh, trim its streams again
+            self._last_interval_s = -math.inf
+            self._last_param_req_s = -math.inf
+            self.autopilot_params = {}
+            self._seen_ids = set()
+            self._trimmed = {}
+            self.hover.reset()
         self._last_hb_s = t_s
         self.counters['heartbeats_rx'] += 1
         self.base_mode = base_mode
@@ -447,26 +512,75 @@ class BridgeCore:
         return True
 
     def on_command_ack(self, t_s: float, command: int, result: int) -> None:
-        """COMMAND_ACK: a final refusal cancels the matching pending request."""
-        if result in (MAV_RESULT_ACCEPTED, MAV_RESULT_TEMPORARILY_REJECTED,
-                      MAV_RESULT_IN_PROGRESS):
-            return  # accepted: wait for the HEARTBEAT; temporarily rejected: retry
+        """COMMAND_ACK, as PX4 v1.16 sends them.
+
+        DO_SET_MODE is answered twice by PX4: first the MAVLink receiver's ACCEPTED (the
+        command was forwarded), then the commander's verdict; the first ACK after a send is
+        therefore not a verdict on PX4 (on ArduPilot it is). An accepting verdict ends the
+        re-sends (the HEARTBEAT, 1 Hz on PX4, confirms); TEMPORARILY_REJECTED is retried; a
+        final refusal (DENIED, FAILED, UNSUPPORTED, …) cancels the request. A disarm refused
+        as TEMPORARILY_REJECTED (PX4 in the air) is deferred until the land detector says
+        landed instead of being repeated (each refusal is a critical message on every GCS).
+        """
         if command == MAV_CMD_DO_SET_MODE and self._offboard is not None:
-            self._offboard = None
-            self.last_result = f'{self.params.offboard_mode} refused (MAV_RESULT {result})'
+            req = self._offboard
+            req.acks += 1
+            if result == MAV_RESULT_IN_PROGRESS:
+                return
+            if self.params.autopilot == 'px4' and req.acks == 1 and \
+                    result == MAV_RESULT_ACCEPTED:
+                return  # PX4's MAVLink receiver: forwarded, not yet decided
+            if result == MAV_RESULT_ACCEPTED:
+                req.accepted = True
+            elif result != MAV_RESULT_TEMPORARILY_REJECTED:
+                self._offboard = None
+                self.last_result = f'{self.params.offboard_mode} refused (MAV_RESULT {result})'
         elif command == MAV_CMD_COMPONENT_ARM_DISARM and self._arm is not None:
-            what = 'arm' if self._arm.value else 'disarm'
+            req = self._arm
+            if result in (MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS):
+                req.accepted = result == MAV_RESULT_ACCEPTED
+                return
+            if result == MAV_RESULT_TEMPORARILY_REJECTED:
+                if not req.value:
+                    if not req.deferred:
+                        self.counters['disarm_deferred'] += 1
+                    req.deferred = True
+                    self.last_result = ('disarm deferred: the autopilot is in the air '
+                                        '(TEMPORARILY_REJECTED); re-sent once it says landed')
+                return
+            what = 'arm' if req.value else 'disarm'
             self._arm = None
             self.last_result = f'{what} refused (MAV_RESULT {result})'
 
-    def on_param_value(self, name: str, value: float) -> None:
-        """PARAM_VALUE (ArduPilot GUID_OPTIONS / ANGLE_BOOST checks)."""
-        if math.isfinite(value):
-            self.autopilot_params[name] = value
+    def on_param_value(self, name: str, value: float,
+                       param_type: int = MAV_PARAM_TYPE_REAL32) -> None:
+        """PARAM_VALUE: PX4's COM_OBL_RC_ACT / COM_OF_LOSS_T / MPC_THR_HOVER, ArduPilot's
+        GUID_OPTIONS / ANGLE_BOOST. PX4 sends integer parameters bytewise, ArduPilot as
+        floats (:func:`~mavlink_bridge.conversions.param_value_from_wire`)."""
+        if not isinstance(name, str):
+            return
+        v = param_value_from_wire(value, param_type, self.params.autopilot == 'px4')
+        if math.isfinite(v):
+            self.autopilot_params[name] = v
 
     def on_extended_sys_state(self, landed_state: int) -> None:
         """EXTENDED_SYS_STATE.landed_state → :attr:`landed` (None when undefined)."""
         self.landed = landed_from_extended_sys_state(landed_state)
+
+    def on_message(self, msg_id: int) -> None:
+        """Any message from the autopilot (its message id): the streams it sends, for
+        :attr:`BridgeParams.trim_telemetry`."""
+        self._seen_ids.add(msg_id)
+
+    def on_attitude_target(self, t_s: float, thrust_norm: float, cos_tilt: float,
+                           vz_mps: float) -> None:
+        """PX4's ATTITUDE_TARGET.thrust with the current tilt (cos φ cos θ) and vertical
+        speed: a hover-thrust sample while PX4 flies by itself (armed, in the air, not
+        OFFBOARD, the bridge not streaming and no OFFBOARD request pending)."""
+        if not (self.armed and self.landed is False and self.mode != 'OFFBOARD'
+                and self._offboard is None and not self.streaming(t_s)):
+            return
+        self.hover.on_sample(t_s, thrust_norm, cos_tilt, vz_mps)
 
     def count_bad_data(self, n: int = 1) -> None:
         """Garbage or truncated bytes seen by the transport."""
@@ -525,7 +639,8 @@ class BridgeCore:
         command is older than ``input_timeout_s``, or the stream limiter refuses it
         (:class:`StreamLimiter`: only when commands arrive faster than ``max_stream_rate_hz``
         for longer than ``stream_burst`` commands *and* carry data less than
-        ``fresh_period_s`` newer than the last one sent).
+        ``fresh_period_s`` newer than the last one sent). The thrust is normalised with
+        :attr:`thrust` (the calibration chosen at the last OFFBOARD request).
         """
         if not (math.isfinite(t_s) and math.isfinite(stamp_s) and math.isfinite(thrust_n)):
             self.rejected['nan'] += 1
@@ -556,7 +671,8 @@ class BridgeCore:
             self._stream_start_s = t_s  # a new continuous stream starts here
         self._last_sent_s = t_s
         self.counters['setpoints_sent'] += 1
-        norm = p.thrust.to_norm(thrust_n)
+        self.setpoint_stats.on_sent(t_s)
+        norm = self.thrust.to_norm(thrust_n)
         r, pt, y = self._att_euler
         return AttitudeSetpoint(t_s, self._att_q_ned, norm, thrust_n, r, pt, y)
 
@@ -578,8 +694,27 @@ class BridgeCore:
         return t_s - self._last_sent_s <= self.params.max_stream_gap_s
 
     def stream_age_s(self, t_s: float) -> float:
-        """How long the current continuous stream has lasted (0 when not streaming)."""
-        return t_s - self._stream_start_s if self.streaming(t_s) else 0.0
+        """How long the current continuous stream has lasted, up to its last setpoint (0 when
+        not streaming)."""
+        return self._last_sent_s - self._stream_start_s if self.streaming(t_s) else 0.0
+
+    def in_offboard(self) -> bool:
+        """The autopilot flies our setpoints: its mode is OFFBOARD / GUIDED_NOGPS *and* it is
+        armed (PX4 reports OFFBOARD while disarmed after a failsafe landing)."""
+        return self.armed and self.mode == self.params.offboard_mode
+
+    def stream_diagnostics(self, t_s: float) -> tuple[float, float, str]:
+        """``(rate_hz, max_gap_s, warning)`` of our own setpoints since the previous call
+        (one diagnostics period). ``warning`` is set while the autopilot flies our setpoints
+        and a gap exceeded half of PX4's ``COM_OF_LOSS_T`` (1 s assumed when unknown): one
+        more such stall and PX4 takes its offboard-loss action."""
+        rate, gap = self.setpoint_stats.window(t_s)
+        limit = self.autopilot_params.get('COM_OF_LOSS_T', 1.0)
+        warn = ''
+        if self.in_offboard() and gap > 0.5 * limit:
+            warn = (f'setpoint gap {gap * 1e3:.0f} ms > half of COM_OF_LOSS_T '
+                    f'({limit:.2f} s): the autopilot is close to its offboard-loss action')
+        return rate, gap, warn
 
     # --- services ------------------------------------------------------------------------
 
@@ -595,25 +730,75 @@ class BridgeCore:
         return True, ('arm' if arm else 'disarm') + ' requested'
 
     def request_offboard(self, t_s: float) -> tuple[bool, str]:
-        """``bridge/offboard`` (Trigger): request OFFBOARD / GUIDED_NOGPS once setpoints have
-        streamed for ``offboard_warmup_s``. Returns (accepted, message)."""
+        """``bridge/offboard`` (Trigger): request OFFBOARD / GUIDED_NOGPS while setpoints
+        stream. Refused, with the reason, while the autopilot's configuration is unknown or
+        unsafe (:meth:`px4_config_problem`, :meth:`ardupilot_config_problem`). Returns
+        (accepted, message)."""
         p = self.params
         if not self.link_up(t_s):
             return False, 'no autopilot heartbeat'
         if not self.enabled:
             return False, 'control/enabled is False'
-        problem = self.ardupilot_config_problem()
+        problem = self.ardupilot_config_problem() or self.px4_config_problem()
         if problem:
             return False, problem
         if self.link_monitor.degraded:
             # the operator's explicit way back after a latency stop: measure afresh (a link
             # that is still slow degrades again after window + confirm_s)
             self.link_monitor.reset()
-        if self.mode == p.offboard_mode:
+        self.thrust, self.hover_source = self._calibration()
+        if self.in_offboard():
             return True, f'already in {p.offboard_mode}'
         self._offboard = _Request(t_s, p.offboard_mode)
+        note = ('' if p.autopilot != 'px4' else
+                f'; hover thrust {self.thrust.hover_thrust_norm:.3f} ({self.hover_source})')
         return True, (f'{p.offboard_mode} requested; sent once setpoints have streamed for '
-                      f'{p.offboard_warmup_s:.1f} s')
+                      f'{p.offboard_warmup_s:.1f} s{note}')
+
+    def _calibration(self) -> tuple[ThrustCalibration, str]:
+        """The thrust calibration for the next OFFBOARD and where its hover thrust comes
+        from: PX4's measured hover (:attr:`hover`), else ``MPC_THR_HOVER``, else the
+        configured one (``hover_thrust_source = 'parameter'``, or ArduPilot)."""
+        cal = self.params.thrust
+        if self.params.autopilot != 'px4' or self.params.hover_thrust_source != 'autopilot':
+            return cal, 'parameter'
+        h, src = self.hover.estimate, "measured in the autopilot's hover"
+        if math.isnan(h):
+            h, src = self.autopilot_params.get('MPC_THR_HOVER', math.nan), 'MPC_THR_HOVER'
+        if not cal.norm_min < h < cal.norm_max:
+            return cal, 'parameter'
+        return replace(cal, hover_thrust_norm=h), src
+
+    def px4_config_problem(self) -> str:
+        """Why PX4 must not be put in OFFBOARD now ('' when fine; always '' on ArduPilot).
+
+        Fail closed: an unknown value is a problem. ``COM_OBL_RC_ACT`` must be one of
+        ``offboard_loss_actions`` (default Land or Hold: PX4's default 0 = Position makes an
+        emergency descent without RC while the heartbeat reads POSCTL, measured on v1.16);
+        ``COM_OF_LOSS_T`` must be at most ``max_offboard_loss_timeout_s`` (PX4 flies the last
+        setpoint that long); the hover thrust must be known when it comes from PX4."""
+        p = self.params
+        if p.autopilot != 'px4':
+            return ''
+        ap = self.autopilot_params
+        act = ap.get('COM_OBL_RC_ACT')
+        if act is None:
+            return 'COM_OBL_RC_ACT not read yet: the offboard-loss action is unknown'
+        name = PX4_OFFBOARD_LOSS_ACTIONS.get(int(act), f'unknown ({int(act)})')
+        if name not in p.offboard_loss_actions:
+            return (f'COM_OBL_RC_ACT = {int(act)} ({name}): when the setpoints stop PX4 would '
+                    f'not {" or ".join(p.offboard_loss_actions)}; set COM_OBL_RC_ACT = 4 '
+                    '(Land) or 5 (Hold)')
+        lt = ap.get('COM_OF_LOSS_T')
+        if lt is None:
+            return 'COM_OF_LOSS_T not read yet: the offboard-loss timeout is unknown'
+        if not 0.0 < lt <= p.max_offboard_loss_timeout_s:
+            return (f'COM_OF_LOSS_T = {lt:g} s not in (0, {p.max_offboard_loss_timeout_s:g}] s: '
+                    'PX4 would fly a stale setpoint that long after the companion stops')
+        if p.hover_thrust_source == 'autopilot' and not self.hover.valid and \
+                'MPC_THR_HOVER' not in ap:
+            return 'MPC_THR_HOVER not read yet: the hover thrust is unknown'
+        return ''
 
     def ardupilot_config_problem(self) -> str:
         """Why ArduPilot's GUIDED_NOGPS would misread our thrust ('' when fine or unknown)."""
@@ -636,7 +821,8 @@ class BridgeCore:
     # --- periodic ------------------------------------------------------------------------
 
     def step(self, t_s: float) -> list[Outgoing]:
-        """What to send now: heartbeat (1 Hz), message intervals, retries of arm/mode."""
+        """What to send now: heartbeat (1 Hz), message intervals and stream trims, parameter
+        reads, retries of arm/mode."""
         p = self.params
         out: list[Outgoing] = []
         if not math.isfinite(t_s):
@@ -659,48 +845,85 @@ class BridgeCore:
         if t_s - self._last_interval_s >= p.interval_refresh_s:
             self._last_interval_s = t_s
             out.extend(self._interval_requests())
-        if p.autopilot == 'ardupilot' and t_s - self._last_param_req_s >= 2.0 and not (
-                'GUID_OPTIONS' in self.autopilot_params
-                and 'ANGLE_BOOST' in self.autopilot_params):
+        if p.trim_telemetry and t_s - self._last_trim_s >= 1.0:
+            self._last_trim_s = t_s
+            out.extend(self._trim_requests())
+        wanted = (PX4_PARAMS if p.autopilot == 'px4' else ('GUID_OPTIONS', 'ANGLE_BOOST'))
+        missing = [n for n in wanted if n not in self.autopilot_params]
+        if missing and t_s - self._last_param_req_s >= p.param_retry_s:
             self._last_param_req_s = t_s
-            out.extend(Outgoing('param_request', param_id=n)
-                       for n in ('GUID_OPTIONS', 'ANGLE_BOOST')
-                       if n not in self.autopilot_params)
+            out.extend(Outgoing('param_request', param_id=n) for n in missing)
         self._step_offboard(t_s, out)
         self._step_arm(t_s, out)
         self.counters['commands_sent'] += sum(1 for o in out if o.kind == 'command')
         return out
 
     def _interval_requests(self) -> list[Outgoing]:
+        """SET_MESSAGE_INTERVAL for the telemetry used. Not HEARTBEAT: PX4 refuses it by
+        design (FAILED, v1.16) and sends it at 1 Hz anyway."""
         p = self.params
-        rates = (('ATTITUDE', p.attitude_rate_hz),
+        rates = [('ATTITUDE', p.attitude_rate_hz),
                  ('LOCAL_POSITION_NED', p.local_position_rate_hz),
                  ('DISTANCE_SENSOR', p.distance_sensor_rate_hz),
                  ('HIGHRES_IMU' if p.use_highres_imu else 'SCALED_IMU', p.imu_rate_hz),
-                 ('EXTENDED_SYS_STATE', p.extended_sys_state_rate_hz),
-                 ('HEARTBEAT', 1.0))
+                 ('EXTENDED_SYS_STATE', p.extended_sys_state_rate_hz)]
+        if p.autopilot == 'px4' and p.hover_thrust_source == 'autopilot':
+            rates.append(('ATTITUDE_TARGET', p.attitude_target_rate_hz))
         return [Outgoing('command', MAV_CMD_SET_MESSAGE_INTERVAL,
                          (float(MSG_ID[name]), float(round(1e6 / hz)), 0.0, 0.0, 0.0, 0.0, 0.0),
                          note=name) for name, hz in rates]
+
+    def used_msg_ids(self) -> frozenset[int]:
+        """Message ids the bridge reads (never trimmed), protocol messages included."""
+        p = self.params
+        used = {MSG_ID['ATTITUDE'], MSG_ID['LOCAL_POSITION_NED'], MSG_ID['DISTANCE_SENSOR'],
+                MSG_ID['HIGHRES_IMU' if p.use_highres_imu else 'SCALED_IMU'],
+                MSG_ID['EXTENDED_SYS_STATE']}
+        if p.autopilot == 'px4' and p.hover_thrust_source == 'autopilot':
+            used.add(MSG_ID['ATTITUDE_TARGET'])
+        return KEEP_MSG_IDS | used
+
+    def _trim_requests(self) -> list[Outgoing]:
+        """SET_MESSAGE_INTERVAL(id, −1) — "stop sending" — for every message the autopilot
+        sends us that the bridge does not read (PX4's onboard link streams ~33 types by
+        default). Each id is asked at most 3 times per connection, 1 s apart, and only while
+        it keeps arriving (a refused or non-stream id is not insisted on)."""
+        used = self.used_msg_ids()
+        out = []
+        for mid in sorted(self._seen_ids - used):
+            n = self._trimmed.get(mid, 0)
+            if n >= 3:
+                continue
+            self._trimmed[mid] = n + 1
+            self.counters['trim_requests'] += 1
+            out.append(Outgoing('command', MAV_CMD_SET_MESSAGE_INTERVAL,
+                                (float(mid), -1.0, 0.0, 0.0, 0.0, 0.0, 0.0), note=f'trim {mid}'))
+        self._seen_ids = set()
+        return out
 
     def _step_offboard(self, t_s: float, out: list[Outgoing]) -> None:
         req = self._offboard
         if req is None:
             return
         p = self.params
-        if self.mode == p.offboard_mode:
+        if self.mode == p.offboard_mode and (self.armed or req.accepted):
             self._offboard = None
-            self.last_result = f'{p.offboard_mode} active'
+            self.last_result = (f'{p.offboard_mode} active' if self.armed else
+                                f'{p.offboard_mode} selected (disarmed)')
             return
         if t_s - req.start_s > p.command_timeout_s:
             self._offboard = None
             self.last_result = f'{p.offboard_mode} request timed out'
             return
-        if self.stream_age_s(t_s) < p.offboard_warmup_s or \
-                t_s - self._last_sent_s > p.input_timeout_s:
+        if req.accepted:
+            return  # the verdict was ACCEPTED: wait for the HEARTBEAT, do not re-send
+        if self.stream_age_s(t_s) < p.offboard_warmup_s - 1e-9 or \
+                t_s - self._last_sent_s > 0.5 * p.input_timeout_s:
             return  # stream first, and only ask while it is flowing right now
         if t_s - req.last_sent_s >= p.command_retry_s:
             req.last_sent_s = t_s
+            req.acks = 0
+            req.sends += 1
             p1, p2, p3 = do_set_mode_params(p.autopilot, p.offboard_mode)
             out.append(Outgoing('command', MAV_CMD_DO_SET_MODE,
                                 (p1, p2, p3, 0.0, 0.0, 0.0, 0.0), note=p.offboard_mode))
@@ -716,10 +939,18 @@ class BridgeCore:
             return
         if t_s - req.start_s > p.command_timeout_s:
             self._arm = None
-            self.last_result = ('arm' if req.value else 'disarm') + ' request timed out'
+            self.last_result = ('arm' if req.value else 'disarm') + ' request timed out' + (
+                ' (the autopilot still says in the air; PX4 disarms by itself after '
+                'landing, COM_DISARM_LAND)' if req.deferred else '')
             return
+        if req.deferred:
+            if self.landed is not True:
+                return          # wait for the land detector (PX4 would refuse again)
+            req.deferred = False
+            req.last_sent_s = -math.inf
         if t_s - req.last_sent_s >= p.command_retry_s:
             req.last_sent_s = t_s
+            req.sends += 1
             out.append(Outgoing('command', MAV_CMD_COMPONENT_ARM_DISARM,
                                 (1.0 if req.value else 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
                                 note='arm' if req.value else 'disarm'))

@@ -43,9 +43,11 @@ from std_msgs.msg import Bool, String
 from std_srvs.srv import SetBool, Trigger
 
 from mavlink_bridge.conversions import (
+    MAV_SENSOR_ROTATION_PITCH_270,
+    PX4_OFFBOARD_LOSS_ACTIONS,
     ThrustCalibration,
     attitude_to_enu,
-    distance_sensor_to_range_m,
+    distance_sensor_to_rep117,
     imu_frd_to_flu,
     landing_target_ardupilot,
     landing_target_px4,
@@ -56,6 +58,11 @@ from mavlink_bridge.core import BridgeCore, BridgeParams, LinkMonitorParams
 from mavlink_bridge.signing import load_signing_key, verify_signature_first
 
 _load_signing_key = load_signing_key   # the earlier private name
+
+
+def _actions(value: str) -> tuple[str, ...]:
+    return tuple(a.strip().lower() for a in str(value).split(',') if a.strip())
+
 
 PARAMS = [
     ParamSpec('connection', 'udpin:127.0.0.1:14540',
@@ -85,8 +92,24 @@ PARAMS = [
     positive('fresh_period_s', 0.02,
              'a command whose stamp is this much newer than the last one sent is never '
              'rate-limited (one camera period, 50 Hz); must be <= 0.5 s'),
-    ParamSpec('offboard_warmup_s', 1.2, 'setpoint streaming before the OFFBOARD request',
-              lambda v: v > 1.0, 'must be > 1.0'),
+    ParamSpec('offboard_warmup_s', 0.2, 'setpoint streaming before the OFFBOARD request (PX4 '
+              'v1.16 needs one setpoint younger than COM_OF_LOSS_T)',
+              lambda v: 0.0 <= v < 5.0, 'must be in [0, 5)'),
+    ParamSpec('offboard_loss_actions', 'land,hold',
+              "PX4 COM_OBL_RC_ACT values OFFBOARD may be entered with, comma-separated names "
+              "of 'position, altitude, manual, return, land, hold, terminate, disarm'; any "
+              'other (or unknown) action refuses bridge/offboard',
+              lambda v: bool(_actions(v)) and all(a in PX4_OFFBOARD_LOSS_ACTIONS.values()
+                                                  for a in _actions(v)),
+              'must be a comma-separated list of PX4 offboard-loss action names'),
+    positive('max_offboard_loss_timeout_s', 2.0,
+             'PX4 COM_OF_LOSS_T above this refuses bridge/offboard (PX4 flies the last '
+             'setpoint that long)'),
+    one_of('hover_thrust_source', 'autopilot', ('autopilot', 'parameter'),
+           "PX4: 'autopilot' = the thrust PX4 commands in its own hover (ATTITUDE_TARGET), "
+           "else MPC_THR_HOVER; 'parameter' = hover_thrust_norm"),
+    ParamSpec('trim_telemetry', True, 'ask the autopilot to stop every stream the bridge does '
+              'not read (SET_MESSAGE_INTERVAL -1)'),
     ParamSpec('signing_key_file', '', 'MAVLink 2 signing key file (32 raw bytes or 64 hex '
               'characters); empty = unsigned'),
     ParamSpec('landing_target_output', False,
@@ -123,6 +146,10 @@ class MavlinkBridgeNode(Node):
                 max_stream_rate_hz=cfg['max_stream_rate_hz'], stream_burst=cfg['stream_burst'],
                 fresh_period_s=cfg['fresh_period_s'],
                 offboard_warmup_s=cfg['offboard_warmup_s'],
+                offboard_loss_actions=_actions(cfg['offboard_loss_actions']),
+                max_offboard_loss_timeout_s=cfg['max_offboard_loss_timeout_s'],
+                hover_thrust_source=cfg['hover_thrust_source'],
+                trim_telemetry=cfg['trim_telemetry'],
                 target_component=cfg['target_component'], thrust=calib,
                 link_monitor=LinkMonitorParams(
                     period_s=cfg['timesync_period_s'], max_latency_s=cfg['max_link_latency_s'],
@@ -245,6 +272,8 @@ class MavlinkBridgeNode(Node):
                 and msg.get_srcSystem() != self.core.target_system:
             self._count_rejected('other_system')  # another vehicle's data is not ours
             return
+        if kind != 'BAD_DATA' and msg.get_srcComponent() == self.core.target_component:
+            self.core.on_message(msg.get_msgId())   # (a set insertion: no lock needed)
         if kind == 'BAD_DATA':
             with self._lock:
                 self.core.count_bad_data()
@@ -267,13 +296,21 @@ class MavlinkBridgeNode(Node):
                 self.core.on_timesync(now, int(msg.tc1), int(msg.ts1))
         elif kind == 'PARAM_VALUE':
             with self._lock:
-                self.core.on_param_value(msg.param_id, msg.param_value)
+                self.core.on_param_value(msg.param_id, msg.param_value, msg.param_type)
         elif kind == 'EXTENDED_SYS_STATE':
             with self._lock:
                 self.core.on_extended_sys_state(msg.landed_state)
                 landed = self.core.landed
             if landed is not None:
                 self._publish_latched('landed', self.pub_landed, Bool(data=landed))
+        elif kind == 'ATTITUDE_TARGET':
+            # PX4's own commanded thrust: a hover-thrust sample while PX4 flies by itself
+            if self._att is not None and self._pos is not None and math.isfinite(msg.thrust):
+                (roll, pitch, _), _ = self._att
+                with self._lock:
+                    self.core.on_attitude_target(now, msg.thrust,
+                                                 math.cos(roll) * math.cos(pitch),
+                                                 self._pos[1][2])
         elif kind == 'ATTITUDE':
             vals = (msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed)
             if all(map(math.isfinite, vals)):
@@ -297,17 +334,16 @@ class MavlinkBridgeNode(Node):
             self._publish_imu(*scaled_imu_to_flu(msg.xacc, msg.yacc, msg.zacc, msg.xgyro,
                                                  msg.ygyro, msg.zgyro))
         elif kind == 'DISTANCE_SENSOR':
-            if msg.orientation != 25:
+            if msg.orientation != MAV_SENSOR_ROTATION_PITCH_270:
                 return  # not the downward LidarLite
-            r = distance_sensor_to_range_m(msg.current_distance, msg.min_distance,
-                                           msg.max_distance, msg.orientation)
-            if msg.current_distance == 0xFFFF:
-                r = None  # UINT16_MAX = unknown, not 655.35 m (max_distance may be 0)
             out = self._msg_range
             out.header.stamp = self.get_clock().now().to_msg()
             out.min_range = msg.min_distance * 0.01
             out.max_range = msg.max_distance * 0.01
-            out.range = math.inf if r is None else r
+            # REP-117: -inf too close (<= min_distance, e.g. PX4 SIH's 0 cm on the ground),
+            # +inf no return (beyond max_distance, UINT16_MAX unknown)
+            out.range = distance_sensor_to_rep117(msg.current_distance, msg.min_distance,
+                                                  msg.max_distance)
             self.pub_range.publish(out)
 
     def _count_rejected(self, reason: str) -> None:
@@ -420,6 +456,8 @@ class MavlinkBridgeNode(Node):
     def _srv_offboard(self, request, response):
         with self._lock:
             response.success, response.message = self.core.request_offboard(self._now())
+        log = self.get_logger()
+        (log.info if response.success else log.warning)(f'bridge/offboard: {response.message}')
         return response
 
     # --- periodic ------------------------------------------------------------------------
@@ -449,14 +487,24 @@ class MavlinkBridgeNode(Node):
         self._degraded_logged = degraded
 
     def _publish_diagnostics(self) -> None:
-        """1 Hz: the link monitor (latency, degraded and why) and the stream counters."""
+        """1 Hz: the link monitor (latency, degraded and why), our own setpoint stream (rate
+        and largest gap of the last second; WARN when a gap nears COM_OF_LOSS_T) and the
+        counters."""
+        now = self._now()
         with self._lock:
-            mon = self.core.link_monitor
+            core = self.core
+            mon = core.link_monitor
             lat, rtt, degraded, reason = mon.latency_s, mon.rtt_s, mon.degraded, mon.reason
-            counters = dict(self.core.counters)
+            counters = dict(core.counters)
             counters.update({f'timesync_{k}': v for k, v in mon.counters.items()})
             counters.update({f'timesync_rejected_{k}': v for k, v in mon.rejected.items()})
-            mode, last = self.core.mode, self.core.last_result
+            mode, last = core.mode, core.last_result
+            rate, gap, gap_warn = core.stream_diagnostics(now)
+            max_gap_total = core.setpoint_stats.max_gap_total_s
+            hover, hover_src = core.thrust.hover_thrust_norm, core.hover_source
+            measured = core.hover.estimate
+            problem = core.px4_config_problem() or core.ardupilot_config_problem()
+            params = dict(core.autopilot_params)
         st = DiagnosticStatus(name='mavlink_bridge: link', hardware_id='mavlink')
         if degraded:
             st.level, st.message = DiagnosticStatus.ERROR, reason
@@ -465,13 +513,30 @@ class MavlinkBridgeNode(Node):
         else:
             st.level, st.message = DiagnosticStatus.OK, f'latency {lat * 1e3:.0f} ms'
         vals = {'latency_ms': f'{lat * 1e3:.1f}', 'rtt_ms': f'{rtt * 1e3:.1f}',
-                'degraded': str(degraded), 'mode': mode, 'last_result': last}
+                'degraded': str(degraded), 'mode': mode, 'last_result': last,
+                'offboard_refused_because': problem,
+                'hover_thrust_norm': f'{hover:.4f}', 'hover_thrust_source': hover_src,
+                'hover_thrust_measured': f'{measured:.4f}'}
+        vals.update({f'param_{k}': f'{v:g}' for k, v in params.items()})
         vals.update({k: str(v) for k, v in counters.items()})
         st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]
+        sp = DiagnosticStatus(name='mavlink_bridge: setpoints', hardware_id='mavlink')
+        if gap_warn:
+            sp.level, sp.message = DiagnosticStatus.WARN, gap_warn
+        else:
+            sp.level = DiagnosticStatus.OK
+            sp.message = ('not streaming' if math.isnan(rate) or rate == 0.0 else
+                          f'{rate:.0f} Hz, largest gap {gap * 1e3:.0f} ms')
+        sp.values = [KeyValue(key='rate_hz', value=f'{rate:.1f}'),
+                     KeyValue(key='max_gap_ms', value=f'{gap * 1e3:.1f}'),
+                     KeyValue(key='max_gap_since_start_ms', value=f'{max_gap_total * 1e3:.1f}'),
+                     KeyValue(key='sent', value=str(counters['setpoints_sent']))]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [st]
+        arr.status = [st, sp]
         self.pub_diag.publish(arr)
+        if gap_warn:
+            self.get_logger().warning(gap_warn, throttle_duration_sec=5.0)
 
     def destroy_node(self) -> None:
         self._running = False

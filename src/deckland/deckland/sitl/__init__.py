@@ -1,0 +1,1 @@
+"""Real autopilots as processes for tests, demos and campaigns (PX4 SITL: :mod:`.px4`)."""
