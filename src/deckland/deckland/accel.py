@@ -43,7 +43,9 @@ PACKAGES = ('deckland_common', 'deck_simulator', 'apron_estimator', 'landing_pla
 #: compile; it costs nothing in fault-free runs) and everything touching rclpy stay Python.
 COMPILED_MODULES = (
     'deckland_common.frames',
+    'deck_simulator.autopilot',
     'deck_simulator.deck',
+    'deck_simulator.link',
     'deck_simulator.sensors',
     'deck_simulator.vehicle',
     'deck_simulator.world',

@@ -14,7 +14,7 @@ workers); ``realtime_factor_per_worker`` divides it by the worker processes used
 ``'compiled'`` when the mypyc build of the cores flew the runs (``deckland.accel``; identical
 results), ``'python'`` otherwise.
 
-``outcomes`` counts the runs of each safety class (``deckland.runner.classify``,
+``outcomes`` counts the runs of each safety class (``deck_simulator.outcome.classify``,
 docs/failsafe.md); a failure's ``outcome`` is its class.
 
 Run ``i`` of a campaign with seed ``S`` flies seed ``S * 100000 + i``; any failure listed in the

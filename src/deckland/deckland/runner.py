@@ -17,6 +17,7 @@ from typing import Any
 
 from apron_estimator.estimator import ApronEstimator, EstimatorParams
 from apron_estimator.types import PixyBlock
+from deck_simulator.outcome import RunOutcome, landing_outcome
 from deck_simulator.scenario import Scenario
 from deck_simulator.world import World
 from dob_altitude.adapter import altitude_input, make_controller, parse_vertical_frame
@@ -58,31 +59,11 @@ class RunConfig:
 
 
 @dataclass
-class RunResult:
-    """Outcome of one run (the fields of a campaign's per-run record)."""
+class RunResult(RunOutcome):
+    """Outcome of one run (a campaign's per-run record): the simulator's outcome record
+    (:class:`deck_simulator.outcome.RunOutcome`) plus what the runner knows."""
 
-    seed: int
-    scenario: str
-    controller: str
-    landed_on_deck: bool = False
-    success: bool = False
-    crash: bool = False
-    fallback: bool = False
-    contact_kind: str = 'none'
-    horizontal_error_m: float = math.nan
-    touchdown_speed_mps: float = math.nan
-    time_to_land_s: float = math.nan
-    searches: int = 0
-    max_thrust_n: float = 0.0
-    final_mode: str = ''
-    reason: str = ''
-    sim_time_s: float = 0.0
-    # fault campaigns (docs/failsafe.md): 'deck' | 'fallback' | 'hold' | 'crash' | 'unstable'
-    outcome: str = ''
-    failsafes: int = 0              # times the emulated autopilot's offboard-loss failsafe engaged
-    failsafe_mode: str = ''         # its mode at the end of the run ('' = offboard)
-    final_height_m: float = math.nan   # true height above the surface below at the end
-    final_speed_mps: float = math.nan  # true speed at the end (3-D)
+    controller: str = ''
     link_degraded_s: float = math.nan  # when the LinkMonitor stopped the commands (NaN: never)
     link_latency_s: float = math.nan   # its one-way latency estimate at the end
     trace: dict[str, list[float]] = field(default_factory=dict)
@@ -131,7 +112,6 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     replies: list[tuple[float, float]] = []   # (t_received, t_sent), sorted
     commanding = True
 
-    result = RunResult(seed=seed, scenario=scenario.name, controller=config.controller)
     trace: dict[str, list[float]] = {k: [] for k in TRACE_FIELDS} if config.record else {}
     modes = list(Mode)
 
@@ -211,58 +191,15 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
         if t_contact is not None and (world.t_s - t_contact >= settle_s or mode is landed):
             break
 
-    outcome = world.outcome()
-    result.max_thrust_n = outcome.max_thrust_n
-    result.final_mode = mode.name
-    result.searches = planner.searches
-    result.sim_time_s = world.t_s
-    if outcome.contact_kind == 'none':
-        result.reason = f'no touchdown within {scenario.timeout_s:.0f} s (mode {mode.name})'
-    else:
-        result.contact_kind = outcome.contact_kind
-        result.touchdown_speed_mps = outcome.touchdown_speed_mps
-        result.horizontal_error_m = outcome.horizontal_error_m
-        result.time_to_land_s = outcome.t_s
-        result.landed_on_deck = outcome.landed_on_deck
-        result.crash = outcome.crash
-        result.fallback = outcome.fallback
-        result.success = outcome.landed_on_deck and not outcome.crash
-        result.reason = outcome.reason
-    truth = world.truth()
-    result.failsafes = world.link_stats['failsafes']
-    result.failsafe_mode = world.failsafe or ''
-    result.final_height_m = truth.height_above_surface_m
-    result.final_speed_mps = math.hypot(*truth.velocity_mps)
+    rec = landing_outcome(world, seed, 0.0, planner.searches, mode.name,
+                          f'no touchdown within {scenario.timeout_s:.0f} s (mode {mode.name})')
+    result = RunResult(**asdict(rec), controller=config.controller)
     if monitor is not None:
         result.link_degraded_s = monitor.degraded_since_s
         result.link_latency_s = monitor.latency_s
-    result.outcome = classify(result, truth.roll_rad, truth.pitch_rad)
     if config.record:
         result.trace = trace
     return result
-
-
-HOLD_MAX_SPEED_MPS = 0.5     # 'hold': airborne at the end and slower than this ...
-HOLD_MIN_HEIGHT_M = 0.3      # ... at least this high above the surface below ...
-HOLD_MAX_TILT_RAD = 0.35     # ... and not tilted more than this
-
-
-def classify(result: RunResult, roll_rad: float = 0.0, pitch_rad: float = 0.0) -> str:
-    """Safety class of a finished run (docs/failsafe.md): ``deck`` (landed on the pad),
-    ``fallback`` (a deliberate landing on the ground, not a crash), ``hold`` (no touchdown,
-    airborne and stable at the end), ``crash`` (edge strike, too fast or too tilted) or
-    ``unstable`` (no touchdown but not a stable hover: counted as unsafe)."""
-    if result.crash:
-        return 'crash'
-    if result.contact_kind == 'pad':
-        return 'deck'
-    if result.contact_kind == 'ground':
-        return 'fallback'
-    tilt = math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
-    if (result.final_speed_mps <= HOLD_MAX_SPEED_MPS and tilt <= HOLD_MAX_TILT_RAD
-            and result.final_height_m >= HOLD_MIN_HEIGHT_M):
-        return 'hold'
-    return 'unstable'
 
 
 def _record(trace, t, pos, truth, vert, apron, out, alt_out, mode_index) -> None:
