@@ -96,6 +96,8 @@ class SimulationLoop:
             assert firmware is not None
             self.autopilot = firmware(world)
             world.attach_autopilot(self.autopilot)
+            if fs is not None:   # the firmware boots and takes off first: faults count
+                fs.start_at(None)   # from the landing trigger
             if relay is not None:
                 companion, fw = relay
                 if ImpairedLink.wire_faults(fs):
@@ -121,6 +123,7 @@ class SimulationLoop:
                          'relayed_up': 0, 'relayed_down': 0}
         self.rejected: dict[str, int] = {'bad_dt': 0, 'bad_mode': 0}
         self.last_kind = 'firmware'
+        self._faults_dormant = emulator is None and fs is not None
         if emulator is not None:
             # the vehicle hovers armed in POSCTL at the start (PX4 after a manual take-off)
             self._take('lidar', 0.0)
@@ -198,8 +201,12 @@ class SimulationLoop:
         if self.emulator is not None:
             if self._take('control', t):
                 self._control(t)
-        elif self.relay is not None:
-            self._relay()
+        else:
+            if self._faults_dormant and self.trigger_t_s is not None:
+                self._faults_dormant = False
+                world.faults.start_at(self.trigger_t_s)
+            if self.relay is not None:
+                self._relay()
         world.step(self.h_s)      # the autopilot flies the non-offboard modes in here
         self.counters['substeps'] += 1
         t = world.t_s
