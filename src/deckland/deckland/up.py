@@ -321,7 +321,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
     nodes = graph['nodes']
     px4 = None
     if use_px4:
-        from deckland.sitl.mission import Px4Mission
+        from deckland.sitl.mission import Px4Mission, operator_take_off
         from deckland.sitl.px4 import Px4NotFoundError
         try:
             px4 = Px4Mission(scenario, keep_ulog=args.keep_ulog)
@@ -394,7 +394,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
             if record is not None:
                 recorder = _start_recorder(record, monitor, [
                     t for t in wait_topics if t not in px4.GROUND_SILENT], orch)
-            ok, msg = _px4_take_off(px4, monitor, orch, stop_requested.is_set)
+            ok, msg = operator_take_off(px4, monitor, orch.log, stop_requested.is_set)
             if ok:
                 silent = monitor.wait_flowing(10.0, abort=startup_abort)
                 ok, msg = not silent, f'silent topics in the air {silent}'
@@ -523,9 +523,6 @@ class _EndRunError(Exception):
 
 #: after the touchdown, how long PX4 gets to disarm (land detector: COM_DISARM_LAND 2 s)
 PX4_DISARM_WAIT_S = 20.0
-#: how long the bridge may measure the hover thrust in PX4's loiter (its estimator needs 4 s
-#: of steady hover; gusts can keep it from converging, then MPC_THR_HOVER is used)
-PX4_HOVER_WAIT_S = 20.0
 
 
 def _start_px4(px4, nodes, orch: Orchestrator) -> str:
@@ -542,26 +539,6 @@ def _start_px4(px4, nodes, orch: Orchestrator) -> str:
              f"(simulator TCP {px4.ports['simulator_tcp']}, onboard UDP "
              f"{px4.ports['onboard_remote']}, GCS UDP {px4.ports['gcs_local']})")
     return ''
-
-
-def _px4_take_off(px4, monitor: MissionMonitor, orch: Orchestrator, abort):
-    """The operator's take-off with PX4, the bridge's hover thrust in PX4's hover, and the
-    planner's take-off (its IDLE holds the height it latched on the ground: TAKEOFF resets
-    the reference to the height flown now and holds the approach height)."""
-    orch.log('PX4: EKF origin at the world origin, arm, take off (PX4 AUTO.TAKEOFF)')
-    ok, msg = px4.take_off(abort=abort)
-    orch.log(f'PX4 take-off: {msg}')
-    if not ok:
-        return False, f'PX4 take-off failed: {msg}'
-    hover = px4.wait_hover_measured(monitor.node, PX4_HOVER_WAIT_S, abort=abort)
-    orch.log(f"bridge: hover thrust measured in PX4's hover {hover:.4f}" if math.isfinite(hover)
-             else f"bridge: no steady hover thrust in PX4's hover within {PX4_HOVER_WAIT_S:g}"
-             ' s (MPC_THR_HOVER is used)')
-    ok, msg = monitor.trigger('planner/takeoff')
-    orch.log(f'planner/takeoff: {ok} {msg}')
-    if not ok:
-        return False, f'planner/takeoff refused: {msg}'
-    return True, msg
 
 
 def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: list[str],

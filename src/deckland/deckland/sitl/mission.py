@@ -37,6 +37,9 @@ from deckland.sitl.px4 import NONE_IRIS, ZERO_FLOAT, Px4Sitl
 
 #: the physics rate of the simulator with PX4: two sub-steps per 250 Hz lockstep period
 PHYSICS_RATE_HZ = 500.0
+#: how long the bridge may measure the hover thrust in PX4's loiter (its estimator needs 4 s
+#: of steady hover; gusts can keep it from converging, then MPC_THR_HOVER is used)
+HOVER_WAIT_S = 20.0
 #: PX4 COM_OBL_RC_ACT values (v1.16 parameter metadata): Return, Land
 OBL_RETURN, OBL_LAND = 3, 4
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -446,3 +449,24 @@ class Px4Mission:
             'px4_cpu_s': round(self.px4.cpu_s(), 1),
             'ulog_dir': str(self.keep_ulog) if self.keep_ulog else None,
         }
+
+
+def operator_take_off(px4: Px4Mission, monitor, log, abort=None) -> tuple[bool, str]:
+    """The operator's take-off with PX4 (:meth:`Px4Mission.take_off`), the bridge's hover
+    thrust in PX4's loiter, and the planner's take-off (its IDLE holds the height it latched
+    on the ground; TAKEOFF resets the reference to the height flown now and holds the
+    approach height). ``monitor``: :class:`deckland.up.MissionMonitor`; ``log(text)``."""
+    log('PX4: EKF origin at the world origin, arm, take off (PX4 AUTO.TAKEOFF)')
+    ok, msg = px4.take_off(abort=abort)
+    log(f'PX4 take-off: {msg}')
+    if not ok:
+        return False, f'PX4 take-off failed: {msg}'
+    hover = px4.wait_hover_measured(monitor.node, HOVER_WAIT_S, abort=abort)
+    log(f"bridge: hover thrust measured in PX4's hover {hover:.4f}" if math.isfinite(hover)
+        else f"bridge: no steady hover thrust in PX4's hover within {HOVER_WAIT_S:g} s "
+        '(MPC_THR_HOVER is used)')
+    ok, msg = monitor.trigger('planner/takeoff')
+    log(f'planner/takeoff: {ok} {msg}')
+    if not ok:
+        return False, f'planner/takeoff refused: {msg}'
+    return True, msg
