@@ -181,10 +181,15 @@ class RayBackend:
         if self._owner:
             common: dict[str, Any] = {'include_dashboard': False,
                                       'logging_level': logging.WARNING}
-            if address is None:
-                ray.init(address='local', num_cpus=workers or os.cpu_count() or 1, **common)
-            else:
-                ray.init(address=address, **common)
+            try:
+                if address is None:
+                    ray.init(address='local', num_cpus=workers or os.cpu_count() or 1,
+                             **common)
+                else:
+                    ray.init(address=address, **common)
+            except (ConnectionError, ValueError, RuntimeError) as exc:
+                where = 'start a local ray cluster' if address is None else f'join {address}'
+                raise CampaignError(f'cannot {where}: {exc}') from exc
         self.workers = max(1, int(ray.cluster_resources().get('CPU', 1)))
         self._remote = ray.remote(_ray_entry)
 
