@@ -30,7 +30,7 @@ import math
 
 from deckland_common.frames import body_to_world_xy, mat_vec, rot_body_to_world
 
-from apron_estimator import _validate as chk
+from deckland_common import validate as chk
 
 # Default mount, columns = optical x, y, z axes expressed in body FLU.
 _R_DEFAULT = ((0.0, -1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, -1.0))
@@ -57,17 +57,17 @@ class CameraParams:
 
     def __post_init__(self) -> None:
         o = 'CameraParams'
-        chk.in_range(o, 'fov_x_deg', self.fov_x_deg, 1.0, 170.0)
-        chk.in_range(o, 'fov_y_deg', self.fov_y_deg, 1.0, 170.0)
-        chk.positive(o, 'width_px', self.width_px)
-        chk.positive(o, 'height_px', self.height_px)
-        chk.in_range(o, 'cx_px', self.cx_px, 0.0, self.width_px)
-        chk.in_range(o, 'cy_px', self.cy_px, 0.0, self.height_px)
+        chk.in_range(f'{o}.fov_x_deg', self.fov_x_deg, 1.0, 170.0)
+        chk.in_range(f'{o}.fov_y_deg', self.fov_y_deg, 1.0, 170.0)
+        chk.positive(f'{o}.width_px', self.width_px)
+        chk.positive(f'{o}.height_px', self.height_px)
+        chk.in_range(f'{o}.cx_px', self.cx_px, 0.0, self.width_px)
+        chk.in_range(f'{o}.cy_px', self.cy_px, 0.0, self.height_px)
         for name in ('mount_x_m', 'mount_y_m', 'mount_z_m'):
-            chk.in_range(o, name, getattr(self, name), -2.0, 2.0)
+            chk.in_range(f'{o}.{name}', getattr(self, name), -2.0, 2.0)
         for name in ('mount_roll_rad', 'mount_pitch_rad', 'mount_yaw_rad'):
-            chk.in_range(o, name, getattr(self, name), -math.pi, math.pi)
-        chk.in_range(o, 'min_ray_down_cos', self.min_ray_down_cos, 0.0, 0.99)
+            chk.in_range(f'{o}.{name}', getattr(self, name), -math.pi, math.pi)
+        chk.in_range(f'{o}.min_ray_down_cos', self.min_ray_down_cos, 0.0, 0.99)
         if not isinstance(self.paper_exact, bool):
             raise ValueError(f'{o}.paper_exact must be a bool, got {self.paper_exact!r}')
 

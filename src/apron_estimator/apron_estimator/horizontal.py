@@ -37,7 +37,7 @@ from bisect import bisect_right
 from dataclasses import dataclass
 import math
 
-from apron_estimator import _validate as chk
+from deckland_common import validate as chk
 
 _UNKNOWN_VAR_M2 = 1.0e4  # reported variance before the first detection
 
@@ -256,22 +256,22 @@ class HorizontalParams:
 
     def __post_init__(self) -> None:
         o = 'HorizontalParams'
-        chk.non_negative(o, 'accel_psd_m2ps3', self.accel_psd_m2ps3)
-        chk.positive(o, 'sigma0_m', self.sigma0_m)
-        chk.non_negative(o, 'sigma_per_m', self.sigma_per_m)
-        chk.positive(o, 'nis_gate', self.nis_gate)
-        chk.integer_at_least(o, 'acquire_hits', self.acquire_hits, 1)
-        chk.positive(o, 'lost_timeout_s', self.lost_timeout_s)
-        chk.positive(o, 'init_vel_sigma_mps', self.init_vel_sigma_mps)
+        chk.non_negative(f'{o}.accel_psd_m2ps3', self.accel_psd_m2ps3)
+        chk.positive(f'{o}.sigma0_m', self.sigma0_m)
+        chk.non_negative(f'{o}.sigma_per_m', self.sigma_per_m)
+        chk.positive(f'{o}.nis_gate', self.nis_gate)
+        chk.integer_at_least(f'{o}.acquire_hits', self.acquire_hits, 1)
+        chk.positive(f'{o}.lost_timeout_s', self.lost_timeout_s)
+        chk.positive(f'{o}.init_vel_sigma_mps', self.init_vel_sigma_mps)
         if not isinstance(self.use_accel_input, bool):
             raise ValueError(f'{o}.use_accel_input must be a bool, got {self.use_accel_input!r}')
-        chk.positive(o, 'accel_history_s', self.accel_history_s)
+        chk.positive(f'{o}.accel_history_s', self.accel_history_s)
         for name in ('rival_gate_m', 'rival_timeout_s', 'rejected_rival_timeout_s',
                      'ambiguity_min_sep_m', 'verify_radius_m', 'verify_dwell_s',
                      'deck_rise_m'):
-            chk.positive(o, name, getattr(self, name))
-        chk.integer_at_least(o, 'rival_confirm_hits', self.rival_confirm_hits, 1)
-        chk.integer_at_least(o, 'max_rivals', self.max_rivals, 0)
+            chk.positive(f'{o}.{name}', getattr(self, name))
+        chk.integer_at_least(f'{o}.rival_confirm_hits', self.rival_confirm_hits, 1)
+        chk.integer_at_least(f'{o}.max_rivals', self.max_rivals, 0)
         if self.accel_history_s < self.lost_timeout_s:
             raise ValueError(f'{o}.accel_history_s must be >= lost_timeout_s')
 

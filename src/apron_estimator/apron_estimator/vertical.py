@@ -32,9 +32,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 import math
 
-from apron_estimator import _validate as chk
 from apron_estimator.horizontal import AccelIntegrator
 from apron_estimator.types import VerticalState
+from deckland_common import validate as chk
 
 _UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 _SYM = tuple(tuple(_UPPER.index((min(i, j), max(i, j))) for j in range(5)) for i in range(5))
@@ -72,11 +72,11 @@ class VerticalParams:
                      'jump_sigma', 'jump_consistency_m', 'jump_window_s',
                      'rebase_vs_sigma_mps', 'altitude_gate', 'lidar_timeout_s',
                      'range_max_m', 'max_tilt_rad'):
-            chk.positive(o, name, getattr(self, name))
-        chk.non_negative(o, 'vehicle_accel_psd_m2ps3', self.vehicle_accel_psd_m2ps3)
-        chk.non_negative(o, 'range_min_m', self.range_min_m)
-        chk.non_negative(o, 'late_tolerance_s', self.late_tolerance_s)
-        chk.integer_at_least(o, 'jump_confirm', self.jump_confirm, 1)
+            chk.positive(f'{o}.{name}', getattr(self, name))
+        chk.non_negative(f'{o}.vehicle_accel_psd_m2ps3', self.vehicle_accel_psd_m2ps3)
+        chk.non_negative(f'{o}.range_min_m', self.range_min_m)
+        chk.non_negative(f'{o}.late_tolerance_s', self.late_tolerance_s)
+        chk.integer_at_least(f'{o}.jump_confirm', self.jump_confirm, 1)
         if self.range_min_m >= self.range_max_m:
             raise ValueError(f'{o}.range_min_m must be < range_max_m')
         if self.surface_model not in ('accel', 'velocity'):

@@ -34,6 +34,8 @@ import sys
 import time
 from typing import Any
 
+from deckland_common.stats import percentile
+
 from deckland import accel, backends
 from deckland.backends import CampaignError, Chunk, LocalPool, RayBackend
 from deckland.runner import CONTROLLERS, RunConfig, RunResult, run_landing
@@ -49,17 +51,6 @@ HOW_RUN_KEYS = ('wall_time_s', 'realtime_factor', 'realtime_factor_per_worker', 
 def run_seed(campaign_seed: int, index: int) -> int:
     """The seed of run ``index`` in a campaign seeded ``campaign_seed``."""
     return campaign_seed * SEED_STRIDE + index
-
-
-def _percentile(values: list[float], q: float) -> float:
-    """Linear-interpolated percentile (numpy's default method), NaN for no data."""
-    if not values:
-        return math.nan
-    xs = sorted(values)
-    pos = (len(xs) - 1) * q / 100.0
-    lo = math.floor(pos)
-    hi = min(lo + 1, len(xs) - 1)
-    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
 
 
 def summarize(results: list[RunResult], scenario: str, controller: str, seed: int,
@@ -80,7 +71,7 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
         out = {}
         for key in keys:
             value = max(xs) if (key == 'max' and xs) else (
-                math.nan if key == 'max' else _percentile(xs, float(key[1:])))
+                math.nan if key == 'max' else percentile(xs, float(key[1:])))
             out[key] = _json_float(value)
         return out
 
