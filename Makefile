@@ -91,7 +91,7 @@ lint: setup
 
 # Deliberate only (never run by tests): fly the reference landing and rewrite the golden bag.
 golden: setup
-	$(PY) -m deckland.golden record test/fixtures/golden_paper
+	$(PY) test/golden.py record test/fixtures/golden_paper
 
 clean:
 	rm -rf $(VENV) runs build install log .pytest_cache

@@ -17,11 +17,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 import math
 
+from deckland_common.contract import ApronState, PixyBlock
 from deckland_common.frames import wrap_pi
 
 from apron_estimator.camera import CameraModel, CameraParams
 from apron_estimator.horizontal import HorizontalParams, HorizontalTracker
-from apron_estimator.types import ApronState, PixyBlock
 from apron_estimator.vertical import VerticalFilter, VerticalParams
 from deckland_common import validate as chk
 

@@ -32,8 +32,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 import math
 
+from deckland_common.contract import VerticalState
+
 from apron_estimator.horizontal import AccelIntegrator
-from apron_estimator.types import VerticalState
 from deckland_common import validate as chk
 
 _UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))

@@ -399,7 +399,7 @@ class StreamRecorder:
     """Subscriptions on the monitor's node recording the stamp chain (wall arrival times)."""
 
     def __init__(self, node):
-        from apron_estimator.types import APRON_STATE_V1_FIELDS, APRON_STATE_V1_LEN
+        from deckland_common.contract import APRON_STATE_V1_FIELDS, APRON_STATE_V1_LEN
         from deckland_common.ros_node import SENSOR_QOS, stamp_to_s
         from sensor_msgs.msg import PointCloud
         from std_msgs.msg import Float64MultiArray

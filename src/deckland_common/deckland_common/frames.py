@@ -92,6 +92,35 @@ def quaternion_to_euler(w: float, x: float, y: float, z: float) -> Vec3:
     return roll, pitch, yaw
 
 
+#: Largest accepted | |q| − 1 | of a received orientation quaternion before it is refused.
+QUATERNION_NORM_TOLERANCE = 0.05
+
+
+def normalised_quaternion(w: float, x: float, y: float, z: float,
+                          tolerance: float = QUATERNION_NORM_TOLERANCE
+                          ) -> tuple[float, float, float, float] | None:
+    """(w, x, y, z) scaled to unit norm, or None if not finite or | |q| − 1 | > tolerance."""
+    if not (math.isfinite(w) and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return None
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if abs(n - 1.0) > tolerance:
+        return None
+    return w / n, x / n, y / n, z / n
+
+
+def attitude_from_quaternion(w: float, x: float, y: float, z: float,
+                             tolerance: float = QUATERNION_NORM_TOLERANCE) -> Vec3 | None:
+    """A received orientation (``base_link`` in ``map``) → Z-Y-X (roll, pitch, yaw) in rad.
+
+    None when the quaternion is not finite or not (nearly) unit
+    (:func:`normalised_quaternion`); otherwise it is normalised first.
+    """
+    q = normalised_quaternion(w, x, y, z, tolerance)
+    if q is None:
+        return None
+    return quaternion_to_euler(q[0], q[1], q[2], q[3])
+
+
 def wrap_pi(angle_rad: float) -> float:
     """Wrap an angle to [−π, π)."""
     return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi

@@ -1,7 +1,8 @@
-"""Thin rclpy helpers shared by every deckland node: parameters, QoS, and ``main()``.
+"""Thin rclpy helpers shared by every deckland node: parameters, QoS, stamps, the
+guarded-input mixin and ``main()``.
 
 Nodes stay adapters: declare the :class:`~deckland_common.params.ParamSpec` rows, convert
-messages to the pure cores' dataclasses and back, and publish. Nothing algorithmic lives here.
+messages to the pure cores' plain inputs and back, and publish. Nothing algorithmic lives here.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
+from deckland_common.checks import InputGuard
 from deckland_common.params import ParameterError, ParamSpec, validate
 
 #: High-rate sensor streams (camera blocks, lidar, IMU): best effort, keep last 5.
@@ -68,6 +70,53 @@ def s_to_stamp(t_s: float, stamp) -> Any:
 def all_finite(*values: float) -> bool:
     """True when every value is a finite float (the gate in front of every core)."""
     return all(math.isfinite(v) for v in values)
+
+
+class GuardedNode:
+    """Mixin for a node whose pure loop core counts what it rejects and withholds.
+
+    :meth:`attach_guard` shares the core's ``rejected`` / ``withheld`` dicts with the node
+    (the node's own message-level rejections, :meth:`_reject`, count in the same dict) and
+    routes the core's hooks to throttled warnings; :meth:`_now_s` is the node clock in
+    seconds and :meth:`_counter_values` the diagnostics rows of both counters. Mix into an
+    ``rclpy.node.Node`` subclass.
+    """
+
+    rejected: dict[str, int]
+    withheld: dict[str, int]
+    get_clock: Callable[[], Any]     # provided by rclpy.node.Node
+    get_logger: Callable[[], Any]
+    _withheld_text = 'publishing nothing'
+
+    def attach_guard(self, guard: InputGuard, withheld_text: str) -> None:
+        self.rejected = guard.rejected
+        self.withheld = guard.withheld
+        self._withheld_text = withheld_text
+        guard.on_reject = self._log_reject
+        guard.on_withhold = self._log_withheld
+
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _log_reject(self, reason: str, what: str) -> None:
+        self.get_logger().warn(
+            f'rejected {what}: {reason} ({self.rejected.get(reason, 0)} so far)',
+            throttle_duration_sec=2.0)
+
+    def _log_withheld(self, reason: str) -> None:
+        self.get_logger().warn(f'{self._withheld_text}: {reason}',
+                               throttle_duration_sec=2.0)
+
+    def _reject(self, reason: str, what: str) -> None:
+        """Count and log a message the node refuses before its core sees it."""
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self._log_reject(reason, what)
+
+    def _counter_values(self) -> dict[str, str]:
+        """``rejected_<reason>`` and ``withheld_<reason>`` diagnostics values."""
+        values = {f'rejected_{k}': str(v) for k, v in self.rejected.items()}
+        values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
+        return values
 
 
 #: Environment variable choosing the executor of :func:`run_node`: ``events`` (default) or

@@ -36,18 +36,7 @@ from dataclasses import dataclass
 import math
 import struct
 
-try:  # the estimator's block type, when that package is installed (same field names)
-    from apron_estimator.types import PixyBlock
-except ImportError:  # pragma: no cover - depends on the workspace
-    @dataclass(frozen=True, slots=True)
-    class PixyBlock:
-        """Local stand-in with the field names of ``apron_estimator.types.PixyBlock``."""
-
-        signature: int
-        x_px: float
-        y_px: float
-        width_px: float
-        height_px: float
+from deckland_common.contract import PixyBlock
 
 __all__ = [
     'ANGLE_MAX_DEG',

@@ -1,21 +1,40 @@
-"""Inputs and outputs of the apron estimator (pure, no rclpy); see docs/interfaces.md.
+"""The value types the packages exchange (pure, no rclpy): docs/interfaces.md.
 
-``ApronState.to_array()`` / ``ApronState.from_array()`` define the flat ``apron_state_v1``
-layout carried by the ``apron/state`` topic (std_msgs/Float64MultiArray). The index of every
-field is listed in :data:`APRON_STATE_V1_FIELDS` (also rendered in the package README).
-Booleans are 0.0 / 1.0, ``surface_epoch`` is an integer stored as a float, and
-``time_since_seen_s`` / ``camera_stamp_s`` may be ``inf`` / ``-inf`` (never NaN).
+Camera blocks (pixy_driver → estimator), the apron state and its flat ``apron_state_v1`` array
+(estimator → planner, altitude loop), the vehicle state (autopilot → planner), the planner's
+modes, output and vertical reference (planner → altitude loop, horizontal loop), the vertical
+frame names. Frames and units: :mod:`deckland_common.frames`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+import enum
 import math
+from math import isnan
+
+# ======================================================================== camera blocks
+
+
+@dataclass(frozen=True, slots=True)
+class PixyBlock:
+    """One Pixy colour block (CMUcam5 block protocol), pixel coordinates of the frame."""
+
+    signature: int
+    x_px: float   # 0..319, image x right
+    y_px: float   # 0..199, image y down
+    width_px: float
+    height_px: float
+
+
+# ========================================================================== apron state
 
 APRON_STATE_LAYOUT = 'apron_state_v1'
 
-#: Field name at each index of the flat ``apron_state_v1`` array.
+#: Field name at each index of the flat ``apron_state_v1`` array (``apron/state``,
+#: std_msgs/Float64MultiArray). Booleans are 0.0 / 1.0, ``surface_epoch`` is an integer
+#: stored as a float, ``time_since_seen_s`` / ``camera_stamp_s`` may be ±inf (never NaN).
 APRON_STATE_V1_FIELDS: tuple[str, ...] = (
     't_s',                       # 0
     'camera_stamp_s',            # 1  stamp of the latest camera frame processed, -inf if none
@@ -51,19 +70,8 @@ APRON_STATE_V1_LEN = len(APRON_STATE_V1_FIELDS)
 
 
 @dataclass(frozen=True, slots=True)
-class PixyBlock:
-    """One Pixy colour block (CMUcam5 block protocol), pixel coordinates of the frame."""
-
-    signature: int
-    x_px: float   # 0..319, image x right
-    y_px: float   # 0..199, image y down
-    width_px: float
-    height_px: float
-
-
-@dataclass(frozen=True, slots=True)
 class VerticalState:
-    """Vertical state relative to the surface below (see vertical.py)."""
+    """Vertical state relative to the surface below (apron_estimator.vertical)."""
 
     valid: bool                   # lidar seen within timeout and filter initialised
     height_m: float               # body origin above the surface below (h = z_v − z_s)
@@ -86,9 +94,8 @@ class VerticalState:
 class ApronState:
     """Everything the planner and controllers need about the apron at time ``t_s``.
 
-    ``camera_stamp_s`` is an addition to docs/interfaces.md (defaulted, so constructors
-    written against the contract still work): the exposure stamp of the latest camera frame
-    the estimator processed, ``-inf`` before the first one.
+    ``camera_stamp_s``: the exposure stamp of the latest camera frame the estimator
+    processed, ``-inf`` before the first one.
     """
 
     t_s: float
@@ -132,6 +139,23 @@ class ApronState:
             float(v.surface_epoch), float(v.last_rebase_m),
         ]
 
+    def has_nan(self) -> bool:
+        """Any field NaN (what :meth:`to_array` would carry; the estimator never does this)."""
+        v = self.vertical
+        return (isnan(self.t_s) or isnan(self.camera_stamp_s) or isnan(self.time_since_seen_s)
+                or isnan(self.rel_position_m[0]) or isnan(self.rel_position_m[1])
+                or isnan(self.rel_velocity_mps[0]) or isnan(self.rel_velocity_mps[1])
+                or isnan(self.rel_position_var_m2[0]) or isnan(self.rel_position_var_m2[1])
+                or isnan(self.rel_position_body_m[0]) or isnan(self.rel_position_body_m[1])
+                or isnan(self.rel_velocity_body_mps[0])
+                or isnan(self.rel_velocity_body_mps[1])
+                or isnan(self.apron_position_m[0]) or isnan(self.apron_position_m[1])
+                or isnan(self.apron_velocity_mps[0]) or isnan(self.apron_velocity_mps[1])
+                or isnan(v.height_m) or isnan(v.closing_speed_mps)
+                or isnan(v.vehicle_altitude_m) or isnan(v.vehicle_vz_mps)
+                or isnan(v.surface_height_m) or isnan(v.surface_vz_mps)
+                or isnan(v.surface_accel_mps2) or isnan(v.last_rebase_m))
+
     @classmethod
     def from_array(cls, data: Sequence[float]) -> ApronState:
         """Inverse of :meth:`to_array`; raises ValueError on a wrong length or a NaN."""
@@ -151,8 +175,9 @@ class ApronState:
             apron_velocity_mps=(a[17], a[18]), vertical=vertical, camera_stamp_s=a[1])
 
 
-def decode_apron_array(label: str | None, data) -> tuple[ApronState | None, str, str]:
-    """Decode an ``apron/state`` array for a consumer node: ``(state, reason, detail)``.
+def decode_apron_array(label: str | None, data: Sequence[float]
+                       ) -> tuple[ApronState | None, str, str]:
+    """Decode an ``apron/state`` array for a consumer: ``(state, reason, detail)``.
 
     ``state`` is None when the message must be rejected; ``reason`` is then the counter name
     (``'bad_layout'``, ``'bad_size'`` or ``'non_finite'``) and ``detail`` what to log. A
@@ -166,3 +191,100 @@ def decode_apron_array(label: str | None, data) -> tuple[ApronState | None, str,
         return None, 'non_finite' if 'NaN' in str(exc) else 'bad_size', f'apron/state: {exc}'
     except OverflowError:  # an infinite surface_epoch cannot be rounded to an int
         return None, 'non_finite', 'apron/state (surface_epoch)'
+
+
+# ======================================================================== vehicle state
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleState:
+    """What the autopilot reports (local position ENU, attitude FLU in ENU, Z-Y-X Euler)."""
+
+    t_s: float
+    position_m: tuple[float, float, float]
+    velocity_mps: tuple[float, float, float]
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    armed: bool = True
+    landed: bool = False  # the autopilot's own land detector, if any
+
+
+# ============================================================ planner modes and output
+
+#: The vertical frame of a height reference (``PlannerOutput.vertical_mode``, the joint name
+#: of ``planner/reference``, the altitude loop's input): ``'relative'`` = height of the body
+#: origin above the surface below (the paper), ``'world_rate'`` = world altitude of the body
+#: origin (ENU z, the deck-blind constant-rate baseline).
+VERTICAL_RELATIVE = 'relative'
+VERTICAL_WORLD_RATE = 'world_rate'
+VERTICAL_FRAMES = (VERTICAL_RELATIVE, VERTICAL_WORLD_RATE)
+
+
+def parse_vertical_frame(name: str) -> str | None:
+    """A received frame name → one of :data:`VERTICAL_FRAMES`, or None if unknown.
+
+    Case and surrounding blanks are ignored; an empty name (an unset joint name) is the
+    paper's ``'relative'``.
+    """
+    key = name.strip().lower()
+    if not key:
+        return VERTICAL_RELATIVE
+    return key if key in VERTICAL_FRAMES else None
+
+
+class Mode(enum.Enum):
+    """Named states of the landing state machine (paper section 3.3, planner README)."""
+
+    IDLE = 0
+    TAKEOFF = 1
+    APPROACH = 2
+    ALIGN = 3
+    DESCEND = 4
+    FINAL = 5
+    SEARCH = 6
+    FALLBACK = 7
+    HOLD = 8
+    LANDED = 9
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerOutput:
+    """One planner step.
+
+    ``vertical_mode`` says how to read the vertical reference (:data:`VERTICAL_FRAMES`):
+    ``'relative'`` (the paper) — ``z_d_m`` is the height of the body origin above the surface
+    below, tracked with the measured height and closing speed (7)-(9), so the DOB absorbs the
+    heave; ``'world_rate'`` (``descent_profile='constant_rate'``, DESCEND/FINAL only) —
+    ``z_d_m`` is a world altitude (same datum as ``VerticalState.vehicle_altitude_m``)
+    descending at the constant rate ``z_d_dot_mps``, blind to the deck.
+    """
+
+    t_s: float
+    mode: Mode
+    setpoint_m: tuple[float, float]       # horizontal position setpoint, world ENU
+    velocity_ff_mps: tuple[float, float]  # feed-forward (deck velocity when tracking)
+    yaw_rad: float
+    z_d_m: float                          # reference height (see vertical_mode)
+    z_d_dot_mps: float
+    z_d_ddot_mps2: float
+    thrust_enabled: bool                  # False after LANDED (disarm / idle)
+    searches: int
+    reason: str                           # why the last transition happened
+    vertical_mode: str = VERTICAL_RELATIVE
+
+    @property
+    def precise_xy(self) -> bool:
+        """Fly the horizontal controller's stiffer gain set (over the deck, descending)."""
+        return self.mode in (Mode.DESCEND, Mode.FINAL)
+
+
+@dataclass(frozen=True, slots=True)
+class VerticalReference:
+    """The vertical part of ``planner/reference`` as the altitude loop receives it."""
+
+    z_d_m: float
+    z_d_dot_mps: float
+    z_d_ddot_mps2: float
+    frame: str        # one of VERTICAL_FRAMES
+    stamp_s: float    # the t_s of the apron state the planner computed it from
