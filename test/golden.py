@@ -25,6 +25,7 @@ import tempfile
 import time
 from typing import Any
 
+from deckland_common.contract import VehicleDescription
 from deckland_common.stats import percentile
 import yaml
 
@@ -53,7 +54,8 @@ NODE_DEFAULTS: dict[str, dict[str, Any]] = {
                         'position_pair_tolerance_s': 0.005},
     'landing_planner': {'rate_hz': 100.0, 'input_timeout_s': 0.3, 'map_frame': 'map',
                         'landing_area_x_m': 0.0, 'landing_area_y_m': 0.0},
-    'dob_altitude': {'controller': 'dob', 'gains_profile': 'default', 'mass_kg': 2.71,
+    'dob_altitude': {'controller': 'dob', 'gains_profile': 'default',
+                     'mass_kg': VehicleDescription().mass_kg,
                      'thrust_min_n': 2.66, 'thrust_max_n': 53.17,
                      'rotor_height_offset_m': 0.05, 'surface_accel_feedforward': False,
                      'rate_hz': 100.0, 'input_timeout_s': 0.2},

@@ -7,9 +7,12 @@ from deckland_common.contract import (
     APRON_STATE_V1_LEN,
     VERTICAL_FRAMES,
     ApronState,
+    VehicleDescription,
     VerticalState,
     parse_vertical_frame,
 )
+from mavlink_bridge.conversions import ThrustCalibration
+import pytest
 
 
 def a_state(**changes):
@@ -51,6 +54,23 @@ def test_one_name_per_vertical_frame():
         'relative', 'world_rate', 'relative']
     for alias in ('surface', 'world', 'map'):
         assert parse_vertical_frame(alias) is None
+
+
+def test_vehicle_description_is_the_calibration_of_the_bridge():
+    paper = VehicleDescription()
+    assert (paper.mass_kg, paper.gravity_mps2, paper.hover_thrust_norm) == (2.71, 9.81, 0.5)
+    sim = VehicleDescription.from_thrust_to_weight(2.71, 2.5)
+    assert sim.hover_thrust_norm == pytest.approx(0.4)
+    cal = ThrustCalibration.from_vehicle(sim)
+    assert cal.to_norm(sim.weight_n) == pytest.approx(0.4)            # hover at 1/(T/W)
+    assert cal.max_thrust_n == pytest.approx(2.5 * 2.71 * 9.81)         # full thrust = T/W m g
+    assert ThrustCalibration() == ThrustCalibration.from_vehicle(paper)  # one set of defaults
+    with pytest.raises(ValueError, match=r'VehicleDescription\.mass_kg'):
+        VehicleDescription(mass_kg=0.0)
+    with pytest.raises(ValueError, match='thrust_to_weight'):
+        VehicleDescription.from_thrust_to_weight(2.71, 0.9)   # cannot hover
+    with pytest.raises(ValueError, match='hover_thrust_norm'):
+        VehicleDescription(hover_thrust_norm=1.0)
 
 
 def test_stamp_verdict_reasons():

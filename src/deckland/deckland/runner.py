@@ -21,7 +21,7 @@ from apron_estimator.loop import EstimatorLoop
 from deck_simulator.outcome import RunOutcome, landing_outcome
 from deck_simulator.scenario import Scenario
 from deck_simulator.world import World
-from deckland_common.contract import Mode, PixyBlock
+from deckland_common.contract import Mode, PixyBlock, VehicleDescription
 from dob_altitude.adapter import make_controller
 from dob_altitude.loop import AltitudeLoop
 from landing_planner.horizontal import HorizontalController, HorizontalParams
@@ -77,11 +77,22 @@ class RunResult(RunOutcome):
         return out
 
 
-def make_altitude_controller(config: RunConfig):
+def vehicle_description(scenario: Scenario) -> VehicleDescription:
+    """The scenario's vehicle as the stack is told about it (``deckland up`` passes the same
+    to the altitude controller and the bridge): mass, and hover at 1 / thrust-to-weight."""
+    vp = scenario.vehicle
+    return VehicleDescription.from_thrust_to_weight(vp.mass_kg, vp.thrust_to_weight,
+                                                    vp.gravity_mps2)
+
+
+def make_altitude_controller(config: RunConfig, vehicle: VehicleDescription | None = None):
     """The altitude controller a run uses (the dob_altitude node makes the same choice)."""
+    mass = (vehicle or VehicleDescription()).mass_kg
     if config.controller == 'dob':
-        return make_controller('dob', config.gains_profile, dict(config.dob_overrides))
-    return make_controller('pid', config.gains_profile, dict(config.pid_overrides))
+        return make_controller('dob', config.gains_profile,
+                               {'mass_kg': mass, **dict(config.dob_overrides)})
+    return make_controller('pid', config.gains_profile,
+                           {'mass_kg': mass, **dict(config.pid_overrides)})
 
 
 def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
@@ -111,7 +122,7 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                               **dict(config.horizontal_overrides))), period_s=dt_ctrl)
     # in-process the altitude loop flies through an invalid vertical estimate on the
     # filter's prediction (the node withholds): the campaigns' behaviour, kept
-    altitude = AltitudeLoop(make_altitude_controller(config),
+    altitude = AltitudeLoop(make_altitude_controller(config, vehicle_description(scenario)),
                             period_s=dt_ctrl, surface_accel_ff=config.surface_accel_ff,
                             require_valid_vertical=False)
     # --- mavlink_bridge's link monitor: TIMESYNC requests through the world's link --------

@@ -3,7 +3,8 @@
 Camera blocks (pixy_driver → estimator), the apron state and its flat ``apron_state_v1`` array
 (estimator → planner, altitude loop), the vehicle state (autopilot → planner), the planner's
 modes, output and vertical reference (planner → altitude loop, horizontal loop), the vertical
-frame names. Frames and units: :mod:`deckland_common.frames`.
+frame names, and the vehicle description (mass, hover thrust) shared by the altitude
+controller and the MAVLink bridge. Frames and units: :mod:`deckland_common.frames`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from dataclasses import dataclass
 import enum
 import math
 from math import isnan
+
+from deckland_common import validate as chk
 
 # ======================================================================== camera blocks
 
@@ -288,3 +291,51 @@ class VerticalReference:
     z_d_ddot_mps2: float
     frame: str        # one of VERTICAL_FRAMES
     stamp_s: float    # the t_s of the apron state the planner computed it from
+
+
+# ================================================================== vehicle description
+
+#: Take-off mass of the paper's quadcopter (Table 2), kg.
+PAPER_MASS_KG = 2.71
+#: Gravity of the paper (Table 2), m/s².
+GRAVITY_MPS2 = 9.81
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleDescription:
+    """Mass and thrust curve of the flying vehicle: the one source the altitude controller
+    (its model (6)) and the MAVLink bridge (newtons ↔ normalised thrust) are given.
+
+    In simulation it comes from the scenario (:meth:`from_thrust_to_weight`), on hardware from
+    parameters. Thrust curve (PX4 ``THR_MDL_FAC`` / ArduPilot ``MOT_THST_EXPO``):
+    F(n) = F_max (e n² + (1 − e) n), with hover F = m g at n = ``hover_thrust_norm``.
+    """
+
+    mass_kg: float = PAPER_MASS_KG
+    gravity_mps2: float = GRAVITY_MPS2
+    hover_thrust_norm: float = 0.5     # PX4 MPC_THR_HOVER; 1 / thrust-to-weight when e = 0
+    thrust_expo: float = 0.0           # e above, in [0, 1]
+
+    def __post_init__(self) -> None:
+        o = 'VehicleDescription'
+        chk.positive(f'{o}.mass_kg', self.mass_kg)
+        chk.positive(f'{o}.gravity_mps2', self.gravity_mps2)
+        chk.require(chk.is_finite_number(self.hover_thrust_norm)
+                    and 0.0 < self.hover_thrust_norm < 1.0,
+                    f'{o}.hover_thrust_norm', 'must be in (0, 1)', self.hover_thrust_norm)
+        chk.in_range(f'{o}.thrust_expo', self.thrust_expo, 0.0, 1.0)
+
+    @classmethod
+    def from_thrust_to_weight(cls, mass_kg: float, thrust_to_weight: float,
+                              gravity_mps2: float = GRAVITY_MPS2) -> VehicleDescription:
+        """A vehicle with a linear thrust curve (e = 0) whose full thrust is ``thrust_to_weight``
+        times its weight: hover at 1 / thrust_to_weight (the simulator's vehicle)."""
+        chk.require(chk.is_finite_number(thrust_to_weight) and thrust_to_weight > 1.0,
+                    'VehicleDescription.thrust_to_weight', 'must be > 1', thrust_to_weight)
+        return cls(mass_kg=mass_kg, gravity_mps2=gravity_mps2,
+                   hover_thrust_norm=1.0 / thrust_to_weight, thrust_expo=0.0)
+
+    @property
+    def weight_n(self) -> float:
+        """m g (N): the hover thrust out of ground effect."""
+        return self.mass_kg * self.gravity_mps2

@@ -45,6 +45,8 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 import math
 
+from deckland_common.contract import GRAVITY_MPS2, PAPER_MASS_KG
+
 from dob_altitude.ground_effect import ground_effect_gain
 from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection
 
@@ -61,8 +63,8 @@ class DobParams:
     Gains are easy to override: ``dataclasses.replace(DobParams(), k=2.0)``.
     """
 
-    mass_kg: float = 2.71  # m, Table 2
-    gravity_mps2: float = 9.81  # g, Table 2
+    mass_kg: float = PAPER_MASS_KG  # m, Table 2 (the shared vehicle description)
+    gravity_mps2: float = GRAVITY_MPS2  # g, Table 2
     k: float = PAPER_K  # K of (15)-(16)
     lam: float = PAPER_LAM  # Λ of (14)-(17)
     gamma_obs: float = PAPER_GAMMA_OBS  # Γ of (18)-(19)

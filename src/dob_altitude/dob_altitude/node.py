@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import sys
 
-from deckland_common.contract import decode_apron_array
+from deckland_common.contract import VehicleDescription, decode_apron_array
 from deckland_common.params import ParameterError, ParamSpec, in_range, one_of, positive
 from deckland_common.ros_node import (
     LATCHED_QOS,
@@ -58,7 +58,8 @@ PARAMS = [
     _gain('kp', 'PID K_p (m/s² per m), >= 0'),
     _gain('ki', 'PID K_i (m/s² per m·s), >= 0'),
     _gain('kd', 'PID K_d (m/s² per m/s), >= 0'),
-    positive('mass_kg', 2.71, 'vehicle mass m (paper Table 2)'),
+    positive('mass_kg', VehicleDescription().mass_kg,
+             'vehicle mass m (paper Table 2); deckland up passes the vehicle description'),
     ParamSpec('thrust_min_n', 2.66, 'lowest commanded collective thrust (motors keep spinning)',
               lambda v: v >= 0.0, 'must be >= 0 (and below m g / ge_max_gain)'),
     positive('thrust_max_n', 53.17, 'highest commanded collective thrust (must exceed m g)'),

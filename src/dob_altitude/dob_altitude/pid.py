@@ -30,6 +30,8 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 import math
 
+from deckland_common.contract import GRAVITY_MPS2, PAPER_MASS_KG
+
 from dob_altitude.dob import (
     PAPER_GAMMA_OBS,
     PAPER_K,
@@ -49,8 +51,8 @@ class PidParams:
     Default gains are matched to the paper's DOB gains (Table 4) — see :meth:`from_dob`.
     """
 
-    mass_kg: float = 2.71
-    gravity_mps2: float = 9.81
+    mass_kg: float = PAPER_MASS_KG
+    gravity_mps2: float = GRAVITY_MPS2
     kp: float = PAPER_K * PAPER_LAM + PAPER_K * PAPER_GAMMA_OBS + PAPER_LAM * PAPER_GAMMA_OBS
     ki: float = PAPER_K * PAPER_LAM * PAPER_GAMMA_OBS
     kd: float = PAPER_K + PAPER_LAM + PAPER_GAMMA_OBS
