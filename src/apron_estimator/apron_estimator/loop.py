@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 import math
 
-from deckland_common.checks import InputGuard
+from deckland_common.checks import InputGuard, finite
 from deckland_common.contract import ApronState, PixyBlock
 from deckland_common.frames import normalised_quaternion, quaternion_to_euler
 
@@ -111,9 +111,8 @@ class EstimatorLoop(InputGuard):
             return False
         qn = normalised_quaternion(q[0], q[1], q[2], q[3])
         if qn is None:
-            finite = (math.isfinite(q[0]) and math.isfinite(q[1]) and math.isfinite(q[2])
-                      and math.isfinite(q[3]))
-            self.reject('bad_quaternion' if finite else 'non_finite', 'vehicle/imu orientation')
+            numbers = finite(q[0]) and finite(q[1]) and finite(q[2]) and finite(q[3])
+            self.reject('bad_quaternion' if numbers else 'non_finite', 'vehicle/imu orientation')
             return False
         roll, pitch, yaw = quaternion_to_euler(qn[0], qn[1], qn[2], qn[3])
         self.estimator.on_attitude(t_s, roll, pitch, yaw)
@@ -218,7 +217,7 @@ class EstimatorLoop(InputGuard):
         if now_s - self._t_imu > self.timeout_s:   # -inf: never
             return 'no_attitude'
         t_pos = self.t_position_s
-        if not math.isfinite(t_pos) or now_s - t_pos > self.timeout_s:
+        if not finite(t_pos) or now_s - t_pos > self.timeout_s:
             return 'no_position'
         return ''
 

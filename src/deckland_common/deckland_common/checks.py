@@ -2,13 +2,19 @@
 
 :func:`stamp_verdict` judges a message stamp against the node clock; :class:`InputGuard` is
 the bookkeeping every loop core has: inputs rejected and outputs withheld, counted by reason,
-with optional hooks through which a node logs them (``deckland_common.ros_node.GuardedNode``).
+with optional hooks through which a node logs them (``deckland_common.ros_node.GuardedNode``);
+:func:`finite` is the finiteness test they use.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-import math
+
+
+def finite(x: float) -> bool:
+    """``x`` is neither NaN nor ±inf: x − x is 0 only for a finite x (a plain float test, which
+    the compiled cores run natively; ``math.isfinite`` is a Python call there)."""
+    return x - x == 0.0
 
 
 def stamp_verdict(stamp_s: float, last_s: float, now_s: float, timeout_s: float) -> str:
@@ -19,7 +25,7 @@ def stamp_verdict(stamp_s: float, last_s: float, now_s: float, timeout_s: float)
     ``now − timeout``); ``'future_stamp'`` (later than ``now + timeout``: one such stamp would
     otherwise make every later message look out of order).
     """
-    if not math.isfinite(stamp_s):
+    if not finite(stamp_s):
         return 'non_finite'
     if stamp_s < last_s:
         return 'out_of_order'

@@ -13,7 +13,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 import enum
 import math
-from math import isnan
 
 from deckland_common import validate as chk
 
@@ -93,6 +92,10 @@ class VerticalState:
         return cls(False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0)
 
 
+def _nan(x: float) -> bool:
+    return x != x   # a plain float test (math.isnan is a Python call in the compiled cores)
+
+
 @dataclass(frozen=True, slots=True)
 class ApronState:
     """Everything the planner and controllers need about the apron at time ``t_s``.
@@ -145,19 +148,17 @@ class ApronState:
     def has_nan(self) -> bool:
         """Any field NaN (what :meth:`to_array` would carry; the estimator never does this)."""
         v = self.vertical
-        return (isnan(self.t_s) or isnan(self.camera_stamp_s) or isnan(self.time_since_seen_s)
-                or isnan(self.rel_position_m[0]) or isnan(self.rel_position_m[1])
-                or isnan(self.rel_velocity_mps[0]) or isnan(self.rel_velocity_mps[1])
-                or isnan(self.rel_position_var_m2[0]) or isnan(self.rel_position_var_m2[1])
-                or isnan(self.rel_position_body_m[0]) or isnan(self.rel_position_body_m[1])
-                or isnan(self.rel_velocity_body_mps[0])
-                or isnan(self.rel_velocity_body_mps[1])
-                or isnan(self.apron_position_m[0]) or isnan(self.apron_position_m[1])
-                or isnan(self.apron_velocity_mps[0]) or isnan(self.apron_velocity_mps[1])
-                or isnan(v.height_m) or isnan(v.closing_speed_mps)
-                or isnan(v.vehicle_altitude_m) or isnan(v.vehicle_vz_mps)
-                or isnan(v.surface_height_m) or isnan(v.surface_vz_mps)
-                or isnan(v.surface_accel_mps2) or isnan(v.last_rebase_m))
+        return (_nan(self.t_s) or _nan(self.camera_stamp_s) or _nan(self.time_since_seen_s)
+                or _nan(self.rel_position_m[0]) or _nan(self.rel_position_m[1])
+                or _nan(self.rel_velocity_mps[0]) or _nan(self.rel_velocity_mps[1])
+                or _nan(self.rel_position_var_m2[0]) or _nan(self.rel_position_var_m2[1])
+                or _nan(self.rel_position_body_m[0]) or _nan(self.rel_position_body_m[1])
+                or _nan(self.rel_velocity_body_mps[0]) or _nan(self.rel_velocity_body_mps[1])
+                or _nan(self.apron_position_m[0]) or _nan(self.apron_position_m[1])
+                or _nan(self.apron_velocity_mps[0]) or _nan(self.apron_velocity_mps[1])
+                or _nan(v.height_m) or _nan(v.closing_speed_mps) or _nan(v.vehicle_altitude_m)
+                or _nan(v.vehicle_vz_mps) or _nan(v.surface_height_m) or _nan(v.surface_vz_mps)
+                or _nan(v.surface_accel_mps2) or _nan(v.last_rebase_m))
 
     @classmethod
     def from_array(cls, data: Sequence[float]) -> ApronState:

@@ -12,9 +12,8 @@ node, the in-process runner and the golden replay call it; the laws are
 from __future__ import annotations
 
 import math
-from math import isfinite
 
-from deckland_common.checks import InputGuard
+from deckland_common.checks import InputGuard, finite
 from deckland_common.contract import (
     VERTICAL_RELATIVE,
     ApronState,
@@ -95,9 +94,9 @@ class AltitudeLoop(InputGuard):
         on a fixed schedule, the in-process runner).
         """
         v = state.vertical
-        if not (isfinite(state.t_s) and isfinite(v.height_m)
-                and isfinite(v.closing_speed_mps) and isfinite(v.vehicle_altitude_m)
-                and isfinite(v.vehicle_vz_mps) and isfinite(v.surface_accel_mps2)):
+        if not (finite(state.t_s) and finite(v.height_m)
+                and finite(v.closing_speed_mps) and finite(v.vehicle_altitude_m)
+                and finite(v.vehicle_vz_mps) and finite(v.surface_accel_mps2)):
             self.reject('non_finite', 'apron/state')
             return None
         last = self.apron.t_s if self.apron is not None else -math.inf
@@ -112,7 +111,7 @@ class AltitudeLoop(InputGuard):
     def on_reference(self, now_s: float, stamp_s: float, frame_name: str, z_d_m: float,
                      z_d_dot_mps: float, z_d_ddot_mps2: float) -> bool:
         """The vertical part of ``planner/reference`` (``frame_name``: its joint name)."""
-        if not (isfinite(z_d_m) and isfinite(z_d_dot_mps) and isfinite(z_d_ddot_mps2)):
+        if not (finite(z_d_m) and finite(z_d_dot_mps) and finite(z_d_ddot_mps2)):
             self.reject('non_finite', 'planner/reference')
             return False
         # parsed once per change of the name (the planner changes it once per mode switch)
@@ -148,7 +147,7 @@ class AltitudeLoop(InputGuard):
         if not has_orientation:   # REP-145: no orientation estimate
             self.reject('bad_quaternion', 'vehicle/imu (no orientation)')
             return False
-        if not (isfinite(q[0]) and isfinite(q[1]) and isfinite(q[2]) and isfinite(q[3])):
+        if not (finite(q[0]) and finite(q[1]) and finite(q[2]) and finite(q[3])):
             self.reject('non_finite', 'vehicle/imu')
             return False
         att = attitude_from_quaternion(q[0], q[1], q[2], q[3])
@@ -160,7 +159,7 @@ class AltitudeLoop(InputGuard):
     def on_attitude(self, now_s: float, stamp_s: float, roll_rad: float,
                     pitch_rad: float) -> bool:
         """Roll and pitch already as angles (the in-process runner)."""
-        if not (isfinite(roll_rad) and isfinite(pitch_rad)):
+        if not (finite(roll_rad) and finite(pitch_rad)):
             self.reject('non_finite', 'attitude')
             return False
         if not self.check_stamp(stamp_s, self._t_att, now_s, self.timeout_s, 'vehicle/imu'):
@@ -229,8 +228,8 @@ class AltitudeLoop(InputGuard):
                                      self._pitch, self.offset_m, self.surface_accel_ff)
         out = self.controller.step(inp, dt)
         self.counts['steps'] += 1
-        if not (isfinite(out.thrust_n) and isfinite(out.sigma) and isfinite(out.d_hat_mps2)
-                and isfinite(out.e_z_m)):
+        if not (finite(out.thrust_n) and finite(out.sigma) and finite(out.d_hat_mps2)
+                and finite(out.e_z_m)):
             self.withheld['non_finite_output'] += 1  # defensive: the cores never do this
             self._reset()
             return None

@@ -14,9 +14,8 @@ runner and the golden replay call it; the algorithms are
 from __future__ import annotations
 
 import math
-from math import isfinite
 
-from deckland_common.checks import InputGuard
+from deckland_common.checks import InputGuard, finite
 from deckland_common.contract import ApronState, PlannerOutput, VehicleState
 from deckland_common.frames import attitude_from_quaternion
 
@@ -115,11 +114,11 @@ class PlannerLoop(InputGuard):
         # everything the planner reads must be finite (time_since_seen_s and camera_stamp_s
         # may legitimately be ±inf and are not used)
         rel, apos, avel = state.rel_position_m, state.apron_position_m, state.apron_velocity_mps
-        if not (isfinite(state.t_s) and isfinite(rel[0]) and isfinite(rel[1])
-                and isfinite(apos[0]) and isfinite(apos[1]) and isfinite(avel[0])
-                and isfinite(avel[1]) and isfinite(v.height_m)
-                and isfinite(v.closing_speed_mps) and isfinite(v.surface_height_m)
-                and isfinite(v.last_rebase_m)):
+        if not (finite(state.t_s) and finite(rel[0]) and finite(rel[1])
+                and finite(apos[0]) and finite(apos[1]) and finite(avel[0])
+                and finite(avel[1]) and finite(v.height_m)
+                and finite(v.closing_speed_mps) and finite(v.surface_height_m)
+                and finite(v.last_rebase_m)):
             self.reject('non_finite', 'apron/state')
             return None
         last = self.apron.t_s if self.apron is not None else -math.inf
@@ -135,9 +134,9 @@ class PlannerLoop(InputGuard):
             self.reject('bad_frame', f'vehicle/odom (frame {frame_id!r}, expected '
                         f'{self.map_frame!r})')
             return False
-        if not (isfinite(position_m[0]) and isfinite(position_m[1])
-                and isfinite(position_m[2]) and isfinite(q[0]) and isfinite(q[1])
-                and isfinite(q[2]) and isfinite(q[3])):
+        if not (finite(position_m[0]) and finite(position_m[1])
+                and finite(position_m[2]) and finite(q[0]) and finite(q[1])
+                and finite(q[2]) and finite(q[3])):
             self.reject('non_finite', 'vehicle/odom')
             return False
         att = attitude_from_quaternion(q[0], q[1], q[2], q[3])
@@ -149,9 +148,9 @@ class PlannerLoop(InputGuard):
     def on_pose(self, now_s: float, stamp_s: float, position_m: Vec3, roll_rad: float,
                 pitch_rad: float, yaw_rad: float) -> bool:
         """Position and Z-Y-X attitude already as angles (the in-process runner)."""
-        if not (isfinite(position_m[0]) and isfinite(position_m[1])
-                and isfinite(position_m[2]) and isfinite(roll_rad) and isfinite(pitch_rad)
-                and isfinite(yaw_rad)):
+        if not (finite(position_m[0]) and finite(position_m[1])
+                and finite(position_m[2]) and finite(roll_rad) and finite(pitch_rad)
+                and finite(yaw_rad)):
             self.reject('non_finite', 'vehicle pose')
             return False
         if not self.check_stamp(stamp_s, self._t_pose, now_s, self.timeout_s, 'vehicle/odom'):
@@ -167,8 +166,8 @@ class PlannerLoop(InputGuard):
             self.reject('bad_frame', f'vehicle/velocity (frame {frame_id!r}, expected '
                         f'{self.map_frame!r})')
             return False
-        if not (isfinite(velocity_mps[0]) and isfinite(velocity_mps[1])
-                and isfinite(velocity_mps[2])):
+        if not (finite(velocity_mps[0]) and finite(velocity_mps[1])
+                and finite(velocity_mps[2])):
             self.reject('non_finite', 'vehicle/velocity')
             return False
         if not self.check_stamp(stamp_s, self._t_vel, now_s, self.timeout_s,
@@ -263,10 +262,10 @@ class PlannerLoop(InputGuard):
                                            (pos[0], pos[1]), (vel[0], vel[1]),
                                            vehicle.yaw_rad, dt, precise=out.precise_xy)
         sp, ff = out.setpoint_m, out.velocity_ff_mps
-        if not (isfinite(roll) and isfinite(pitch) and isfinite(out.yaw_rad)
-                and isfinite(sp[0]) and isfinite(sp[1]) and isfinite(ff[0])
-                and isfinite(ff[1]) and isfinite(out.z_d_m) and isfinite(out.z_d_dot_mps)
-                and isfinite(out.z_d_ddot_mps2)):
+        if not (finite(roll) and finite(pitch) and finite(out.yaw_rad)
+                and finite(sp[0]) and finite(sp[1]) and finite(ff[0])
+                and finite(ff[1]) and finite(out.z_d_m) and finite(out.z_d_dot_mps)
+                and finite(out.z_d_ddot_mps2)):
             self.withhold('non_finite_output')   # defensive: the cores never do this
             return PlannerTick(out, apron, (roll, pitch), self.last_stamp, 'non_finite_output')
         stamp_s = max(apron.t_s, self.last_stamp)
