@@ -136,3 +136,21 @@ def test_quaternion_path_equals_the_euler_path():
     assert a is not None and b is not None and a.tracked and b.tracked
     for x, y in zip(a.to_array(), b.to_array(), strict=True):
         assert x == pytest.approx(y, abs=1e-9)
+
+
+def test_odom_variances_are_the_filters_or_unknown():
+    from apron_estimator.loop import UNKNOWN_VAR
+
+    loop = fresh_loop()
+    feed_vehicle(loop, 1.0)
+    st = loop.publish(1.0)
+    assert not st.tracked
+    var = loop.odom_variances(st, 1.0)
+    vp = loop.estimator.params.vertical
+    assert var[:2] == (UNKNOWN_VAR, UNKNOWN_VAR) and var[3:5] == (UNKNOWN_VAR, UNKNOWN_VAR)
+    assert st.vertical.valid   # one lidar sample: the surface is known to altitude + lidar
+    assert var[2] == pytest.approx(vp.sigma_altitude_m ** 2 + vp.sigma_lidar_m ** 2)
+    assert var[5] == pytest.approx(vp.sigma_vz_mps ** 2)
+    values = loop.diagnostic_values(1.5)
+    assert values['age_imu_s'] == '0.500' and values['age_camera_s'] == 'inf'
+    assert values['published'] == '1'

@@ -33,6 +33,9 @@ from deckland_common import validate as chk
 #: horizontal filter's acceleration integrals for good (tests/test_fuzz_nodes.py).
 MAX_SPECIFIC_FORCE_MPS2 = 16.0 * 9.80665
 
+#: Variance (m², m²/s², rad²) published for a quantity that is not known.
+UNKNOWN_VAR = 1.0e4
+
 REJECTED = ('stale_stamp', 'future_stamp', 'malformed_cloud', 'no_orientation',
             'bad_quaternion', 'non_finite', 'out_of_order', 'implausible')
 WITHHELD = ('no_attitude', 'no_position', 'non_finite_output', 'clock_not_advancing')
@@ -252,3 +255,50 @@ class EstimatorLoop(InputGuard):
         if st is not None:
             self._t_imu_published = now_s
         return st
+
+    # --- derived outputs and diagnostics -------------------------------------------------------
+
+    def rel_velocity_var(self, now_s: float) -> tuple[float, float]:
+        """Relative-velocity variances predicted to ``now_s``: c + q·dt of (31)-(32)."""
+        h = self.estimator.horizontal
+        kf = h.kf
+        t_filter = h.t_filter
+        dt = max(0.0, now_s - t_filter) if t_filter is not None else 0.0
+        q = h.params.accel_psd_m2ps3
+        return kf.cx + q * dt, kf.cy + q * dt
+
+    def odom_variances(self, st: ApronState, now_s: float
+                       ) -> tuple[float, float, float, float, float, float]:
+        """``apron/odom`` variances (x, y, z, vx, vy, vz): the track's, the surface's
+        (altitude + lidar), :data:`UNKNOWN_VAR` for what is not known."""
+        vp = self.estimator.params.vertical
+        if st.tracked:
+            var_x, var_y = st.rel_position_var_m2
+            var_vx, var_vy = self.rel_velocity_var(now_s)
+        else:
+            var_x = var_y = var_vx = var_vy = UNKNOWN_VAR
+        if st.vertical.valid:
+            var_z = vp.sigma_altitude_m ** 2 + vp.sigma_lidar_m ** 2
+            var_vz = vp.sigma_vz_mps ** 2
+        else:
+            var_z = var_vz = UNKNOWN_VAR
+        return var_x, var_y, var_z, var_vx, var_vy, var_vz
+
+    def diagnostic_values(self, now_s: float) -> dict[str, str]:
+        """Counters, input ages and the last state, as diagnostics key/values."""
+        values = {'published': str(self.published)}
+        for name, t in self.last_stamp.items():
+            values[f'age_{name}_s'] = 'inf' if t is None else f'{now_s - t:.3f}'
+        values.update({f'rejected_{k}': str(v) for k, v in self.rejected.items()})
+        values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
+        values.update({f'trigger_{k}': str(v) for k, v in self.triggers.items()})
+        values.update({f'core_rejected_{k}': str(v)
+                       for k, v in self.estimator.rejected.items()})
+        st = self.last_state
+        if st is not None:
+            values.update(tracked=str(st.tracked), visible=str(st.visible),
+                          time_since_seen_s=f'{st.time_since_seen_s:.3f}',
+                          vertical_valid=str(st.vertical.valid),
+                          height_m=f'{st.vertical.height_m:.3f}',
+                          surface_epoch=str(st.vertical.surface_epoch))
+        return values

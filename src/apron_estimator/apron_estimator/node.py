@@ -39,13 +39,12 @@ from sensor_msgs.msg import Imu, PointCloud, Range
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
 
 from apron_estimator.estimator import ApronEstimator
-from apron_estimator.loop import EstimatorLoop
+from apron_estimator.loop import UNKNOWN_VAR, EstimatorLoop
 from apron_estimator.node_params import (
     ESTIMATOR_DESCRIPTIONS,
     NODE_PARAMS,
     PARAMS,
     SECTIONS,
-    UNKNOWN_VAR,
     estimator_params_from,
 )
 
@@ -81,10 +80,6 @@ class ApronEstimatorNode(GuardedNode, Node):
         self.estimator = self.core.estimator
         self.triggers = self.core.triggers
         self._odom_when_untracked = p['odom_when_untracked']
-        vp = self.estimator.params.vertical
-        # world surface height/velocity uncertainty (see README, Node: apron/odom covariance)
-        self._surface_var = vp.sigma_altitude_m ** 2 + vp.sigma_lidar_m ** 2
-        self._surface_v_var = vp.sigma_vz_mps ** 2
         self._published_at_diag = 0
 
         self.pub_state = self.create_publisher(Float64MultiArray, 'apron/state', RELIABLE_QOS)
@@ -125,10 +120,6 @@ class ApronEstimatorNode(GuardedNode, Node):
         self.get_logger().info(
             f"apron estimator clocked by {how}, FOV {p['camera.fov_x_deg']:g}x"
             f"{p['camera.fov_y_deg']:g} deg, paper_exact={p['camera.paper_exact']}")
-
-    @property
-    def last_state(self):
-        return self.core.last_state
 
     def _build_messages(self, p: dict) -> None:
         """Output messages built once and refilled per publication (publish serialises)."""
@@ -261,28 +252,12 @@ class ApronEstimatorNode(GuardedNode, Node):
         lin = od.twist.twist.linear
         lin.x, lin.y = st.apron_velocity_mps
         lin.z = v.surface_vz_mps if v.valid else 0.0
-        if st.tracked:
-            var_x, var_y = st.rel_position_var_m2
-            var_vx, var_vy = self._rel_velocity_var(now)
-        else:
-            var_x = var_y = var_vx = var_vy = UNKNOWN_VAR
-        var_z, var_vz = ((self._surface_var, self._surface_v_var) if v.valid
-                         else (UNKNOWN_VAR, UNKNOWN_VAR))
-        pc = od.pose.covariance
+        var_x, var_y, var_z, var_vx, var_vy, var_vz = self.core.odom_variances(st, now)
+        pc, tc = od.pose.covariance, od.twist.covariance
         pc[0], pc[7], pc[14] = var_x, var_y, var_z
-        pc[21] = pc[28] = pc[35] = UNKNOWN_VAR
-        tc = od.twist.covariance
         tc[0], tc[7], tc[14] = var_vx, var_vy, var_vz
-        tc[21] = tc[28] = tc[35] = UNKNOWN_VAR
+        pc[21] = pc[28] = pc[35] = tc[21] = tc[28] = tc[35] = UNKNOWN_VAR
         return od
-
-    def _rel_velocity_var(self, now: float) -> tuple[float, float]:
-        """Relative-velocity variances predicted to now: c + q·dt of (31)-(32)."""
-        h = self.estimator.horizontal
-        kf = h.kf
-        dt = max(0.0, now - h.t_filter) if h.t_filter is not None else 0.0
-        q = h.params.accel_psd_m2ps3
-        return kf.cx + q * dt, kf.cy + q * dt
 
     # --- diagnostics -----------------------------------------------------------------------
 
@@ -303,23 +278,11 @@ class ApronEstimatorNode(GuardedNode, Node):
             status.level = DiagnosticStatus.OK
             tracked = st is not None and st.tracked
             status.message = f"{rate} states/s, {'tracked' if tracked else 'not tracked'}"
-        values = {'states_per_s': str(rate), 'published': str(core.published)}
-        for name, t in core.last_stamp.items():
-            values[f'age_{name}_s'] = 'inf' if t is None else f'{now - t:.3f}'
-        values.update(self._counter_values())
-        values.update({f'trigger_{k}': str(v) for k, v in core.triggers.items()})
+        values = {'states_per_s': str(rate), **core.diagnostic_values(now)}
         if self.loop is not None:
             values.update(loop_ticks=str(self.loop.ticks), loop_skipped=str(self.loop.skipped),
                           loop_overruns=str(self.loop.overruns),
                           loop_errors=str(self.loop_errors))
-        values.update({f'core_rejected_{k}': str(v)
-                       for k, v in self.estimator.rejected.items()})
-        if st is not None:
-            values.update(tracked=str(st.tracked), visible=str(st.visible),
-                          time_since_seen_s=f'{st.time_since_seen_s:.3f}',
-                          vertical_valid=str(st.vertical.valid),
-                          height_m=f'{st.vertical.height_m:.3f}',
-                          surface_epoch=str(st.vertical.surface_epoch))
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         s_to_stamp(now, msg.header.stamp)

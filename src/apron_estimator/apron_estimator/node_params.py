@@ -16,10 +16,8 @@ from deckland_common.params import ParameterError, ParamSpec, in_range, one_of, 
 from apron_estimator.camera import CameraParams
 from apron_estimator.estimator import EstimatorParams
 from apron_estimator.horizontal import HorizontalParams
+from apron_estimator.loop import UNKNOWN_VAR
 from apron_estimator.vertical import VerticalParams
-
-#: Variance (m², m²/s², rad²) published for a quantity that is not known.
-UNKNOWN_VAR = 1.0e4
 
 #: Parameter prefix of each nested dataclass of EstimatorParams.
 SECTIONS = (('camera', CameraParams), ('horizontal', HorizontalParams),

@@ -119,10 +119,6 @@ class DobAltitudeNode(GuardedNode, Node):
             f"{p['controller']} altitude loop stepped per apron/state, profile "
             f"{p['gains_profile']!r}, overrides {overrides}")
 
-    @property
-    def last_output(self):
-        return self.core.last_output
-
     # --- subscriptions (message → plain numbers → the loop) --------------------------------
 
     def _on_apron(self, msg: Float64MultiArray) -> None:

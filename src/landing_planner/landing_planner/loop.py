@@ -2,13 +2,11 @@
 
 Everything between the node's subscriptions and its commands, on plain numbers: inputs gated
 (finite, map frame, unit orientation, stamps in order and not stale or future against
-``now``), one tick per accepted apron state — ``planner.step`` first, then the horizontal loop
-on the measured position, velocity and yaw — with ``dt`` from the node clock, the watchdog's
-safe fallback while ``apron/state`` is stale, and the commands withheld when the vehicle state
-is stale, the planner disables thrust or an output is not finite. The node, the in-process
-runner and the golden replay call it; the algorithms are
-:class:`~landing_planner.planner.LandingPlanner` and
-:class:`~landing_planner.horizontal.HorizontalController`.
+``now``), one tick per accepted apron state — ``planner.step``, then the horizontal loop on
+the measured position, velocity and yaw — with ``dt`` from the node clock, the watchdog's safe
+fallback while ``apron/state`` is stale, and the commands withheld when the vehicle state is
+stale, the planner disables thrust or an output is not finite. The node, the in-process
+runner and the golden replay call it (cores: ``planner.LandingPlanner``, ``horizontal``).
 """
 
 from __future__ import annotations
@@ -278,3 +276,22 @@ class PlannerLoop(InputGuard):
         self.last_command = (roll, pitch)
         self.counts['attitude'] += 1
         return PlannerTick(out, apron, (roll, pitch), stamp_s, '')
+
+    def diagnostic_values(self, now_s: float) -> dict[str, str]:
+        """Input ages, counters and the cores' rejections, as diagnostics key/values."""
+        apron = self.apron
+
+        def age(stamp_s: float) -> str:
+            return f'{now_s - stamp_s:.3f}'   # a never-received input: -inf, age inf
+
+        values = {'apron_age_s': age(apron.t_s if apron is not None else -math.inf),
+                  'odom_age_s': age(self._t_pose), 'velocity_age_s': age(self._t_vel),
+                  'landed': str(self.landed)}
+        values.update({k: str(v) for k, v in self.counts.items()})
+        values.update({f'rejected_{k}': str(v) for k, v in self.rejected.items()})
+        values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
+        values.update({f'planner_rejected_{k}': str(v)
+                       for k, v in self.planner.rejected.items()})
+        values.update({f'horizontal_rejected_{k}': str(v)
+                       for k, v in self.horizontal.rejected.items()})
+        return values

@@ -12,7 +12,6 @@ decreasing); a watchdog at ``rate_hz`` ticks on the core's safe fallback only wh
 
 from __future__ import annotations
 
-import math
 import sys
 
 from deckland_common.contract import VERTICAL_RELATIVE, ApronState, decode_apron_array
@@ -95,14 +94,6 @@ class LandingPlannerNode(GuardedNode, Node):
             'landing area '
             f"({p['landing_area_x_m']:.2f}, {p['landing_area_y_m']:.2f}) m, profile "
             f"{p['descent_profile']!r}")
-
-    @property
-    def last_output(self):
-        return self.core.last_output
-
-    @property
-    def last_command(self) -> tuple[float, float] | None:
-        return self.core.last_command
 
     def _build_messages(self) -> None:
         """Command messages built once and refilled per tick (publish serialises them)."""
@@ -248,21 +239,9 @@ class LandingPlannerNode(GuardedNode, Node):
             status.level = DiagnosticStatus.OK
             status.message = f'{self.planner.mode.name}, {rate} steps/s'
 
-        def age(stamp_s: float | None) -> str:
-            return f'{(math.inf if stamp_s is None else now - stamp_s):.3f}'
-
         values = {'mode': self.planner.mode.name, 'reason': self.planner.reason,
                   'searches': str(self.planner.searches), 'steps_per_s': str(rate),
-                  'apron_age_s': age(core.apron.t_s if core.apron else None),
-                  'odom_age_s': age(core.pose[0] if core.pose else None),
-                  'velocity_age_s': age(core.velocity[0] if core.velocity else None),
-                  'landed': str(core.landed)}
-        values.update({k: str(v) for k, v in core.counts.items()})
-        values.update(self._counter_values())
-        values.update({f'planner_rejected_{k}': str(v)
-                       for k, v in self.planner.rejected.items()})
-        values.update({f'horizontal_rejected_{k}': str(v)
-                       for k, v in self.horizontal.rejected.items()})
+                  **core.diagnostic_values(now)}
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
