@@ -16,7 +16,7 @@ import math
 
 from deckland_common.checks import InputGuard, finite
 from deckland_common.contract import ApronState, PixyBlock
-from deckland_common.frames import normalised_quaternion, quaternion_to_euler
+from deckland_common.frames import quaternion_to_euler
 
 from apron_estimator.estimator import ApronEstimator
 from apron_estimator.inputs import (
@@ -112,10 +112,8 @@ class EstimatorLoop(InputGuard):
         if not has_orientation:
             self.reject('no_orientation', 'vehicle/imu')
             return False
-        qn = normalised_quaternion(q[0], q[1], q[2], q[3])
+        qn = self.unit_quaternion(q, 'vehicle/imu orientation')
         if qn is None:
-            numbers = finite(q[0]) and finite(q[1]) and finite(q[2]) and finite(q[3])
-            self.reject('bad_quaternion' if numbers else 'non_finite', 'vehicle/imu orientation')
             return False
         roll, pitch, yaw = quaternion_to_euler(qn[0], qn[1], qn[2], qn[3])
         self.estimator.on_attitude(t_s, roll, pitch, yaw)

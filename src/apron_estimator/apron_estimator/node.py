@@ -30,10 +30,9 @@ from deckland_common.ros_node import (
     s_to_stamp,
     stamp_to_s,
 )
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PointStamped, TwistStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, PointCloud, Range
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
@@ -66,10 +65,7 @@ class ApronEstimatorNode(GuardedNode, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('apron_estimator', **kwargs)
-        try:
-            p = declare_and_validate(self, PARAMS)
-        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-            raise ParameterError(f'apron_estimator: {exc}') from exc
+        p = declare_and_validate(self, PARAMS)
         self.cfg = p
         self.core = EstimatorLoop(ApronEstimator(estimator_params_from(p)),
                                   input_timeout_s=p['input_timeout_s'],
@@ -283,10 +279,7 @@ class ApronEstimatorNode(GuardedNode, Node):
             values.update(loop_ticks=str(self.loop.ticks), loop_skipped=str(self.loop.skipped),
                           loop_overruns=str(self.loop.overruns),
                           loop_errors=str(self.loop_errors))
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        msg = DiagnosticArray(status=[status])
-        s_to_stamp(now, msg.header.stamp)
-        self.pub_diag.publish(msg)
+        self._publish_status(self.pub_diag, status, values)
 
 
 def main(args: list[str] | None = None) -> int:

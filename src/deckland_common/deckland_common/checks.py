@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 
+from deckland_common.frames import normalised_quaternion
+
 
 def finite(x: float) -> bool:
     """``x`` is neither NaN nor ±inf: x − x is 0 only for a finite x (a plain float test, which
@@ -76,3 +78,14 @@ class InputGuard:
             return True
         self.reject(reason, what)
         return False
+
+    def unit_quaternion(self, q: tuple[float, float, float, float],
+                        what: str) -> tuple[float, float, float, float] | None:
+        """A received orientation (w, x, y, z) scaled to unit norm, or None, counted as
+        ``non_finite`` or, off unit by more than ``frames.QUATERNION_NORM_TOLERANCE``,
+        ``bad_quaternion``."""
+        qn = normalised_quaternion(q[0], q[1], q[2], q[3])
+        if qn is None:
+            numbers = finite(q[0]) and finite(q[1]) and finite(q[2]) and finite(q[3])
+            self.reject('bad_quaternion' if numbers else 'non_finite', what)
+        return qn

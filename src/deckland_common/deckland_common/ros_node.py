@@ -13,8 +13,10 @@ import os
 import sys
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
@@ -42,15 +44,19 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 def declare_and_validate(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]:
     """Declare each spec with its description, read the values, validate them all.
 
-    Raises :class:`ParameterError` on the first bad value.
+    Raises :class:`ParameterError` on the first bad value (also for a value of the wrong
+    type, which rclpy refuses while declaring: the message names the node).
     """
     specs = list(specs)
     values = {}
     for spec in specs:
         descriptor = ParameterDescriptor(description=spec.description + (
             f' ({spec.rule})' if spec.rule else ''))
-        values[spec.name] = node.declare_parameter(spec.name, spec.default,
-                                                   descriptor).value
+        try:
+            values[spec.name] = node.declare_parameter(spec.name, spec.default,
+                                                       descriptor).value
+        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            raise ParameterError(f'{node.get_name()}: {exc}') from exc
     return validate(values, specs)
 
 
@@ -117,6 +123,14 @@ class GuardedNode:
         values = {f'rejected_{k}': str(v) for k, v in self.rejected.items()}
         values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
         return values
+
+    def _publish_status(self, publisher: Any, status: DiagnosticStatus,
+                        values: dict[str, str]) -> None:
+        """``status`` with ``values`` as one DiagnosticArray on ``publisher``, stamped now."""
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        publisher.publish(msg)
 
 
 #: Environment variable choosing the executor of :func:`run_node`: ``events`` (default) or

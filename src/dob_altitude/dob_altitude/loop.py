@@ -20,7 +20,7 @@ from deckland_common.contract import (
     VerticalReference,
     parse_vertical_frame,
 )
-from deckland_common.frames import attitude_from_quaternion
+from deckland_common.frames import quaternion_to_euler
 
 from deckland_common import validate as chk
 from dob_altitude import adapter
@@ -147,14 +147,11 @@ class AltitudeLoop(InputGuard):
         if not has_orientation:   # REP-145: no orientation estimate
             self.reject('bad_quaternion', 'vehicle/imu (no orientation)')
             return False
-        if not (finite(q[0]) and finite(q[1]) and finite(q[2]) and finite(q[3])):
-            self.reject('non_finite', 'vehicle/imu')
+        qn = self.unit_quaternion(q, 'vehicle/imu orientation')
+        if qn is None:
             return False
-        att = attitude_from_quaternion(q[0], q[1], q[2], q[3])
-        if att is None:
-            self.reject('bad_quaternion', 'vehicle/imu (not a unit quaternion)')
-            return False
-        return self.on_attitude(now_s, stamp_s, att[0], att[1])
+        roll, pitch, _ = quaternion_to_euler(qn[0], qn[1], qn[2], qn[3])
+        return self.on_attitude(now_s, stamp_s, roll, pitch)
 
     def on_attitude(self, now_s: float, stamp_s: float, roll_rad: float,
                     pitch_rad: float) -> bool:

@@ -24,7 +24,7 @@ from deckland_common.ros_node import (
     s_to_stamp,
     stamp_to_s,
 )
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Vector3Stamped, WrenchStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
@@ -197,10 +197,7 @@ class DobAltitudeNode(GuardedNode, Node):
             values.update(thrust_n=f'{out.thrust_n:.3f}', sigma=f'{out.sigma:.4f}',
                           d_hat_mps2=f'{out.d_hat_mps2:.4f}', e_z_m=f'{out.e_z_m:.4f}',
                           saturated=str(out.saturated))
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.pub_diag.publish(msg)
+        self._publish_status(self.pub_diag, status, values)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -15,7 +15,7 @@ import math
 
 from deckland_common.checks import InputGuard, finite
 from deckland_common.contract import ApronState, PlannerOutput, VehicleState
-from deckland_common.frames import attitude_from_quaternion
+from deckland_common.frames import quaternion_to_euler
 
 from deckland_common import validate as chk
 from landing_planner.horizontal import HorizontalController
@@ -132,16 +132,14 @@ class PlannerLoop(InputGuard):
             self.reject('bad_frame', f'vehicle/odom (frame {frame_id!r}, expected '
                         f'{self.map_frame!r})')
             return False
-        if not (finite(position_m[0]) and finite(position_m[1])
-                and finite(position_m[2]) and finite(q[0]) and finite(q[1])
-                and finite(q[2]) and finite(q[3])):
+        if not (finite(position_m[0]) and finite(position_m[1]) and finite(position_m[2])):
             self.reject('non_finite', 'vehicle/odom')
             return False
-        att = attitude_from_quaternion(q[0], q[1], q[2], q[3])
-        if att is None:
-            self.reject('bad_quaternion', 'vehicle/odom (not a unit quaternion)')
+        qn = self.unit_quaternion(q, 'vehicle/odom orientation')
+        if qn is None:
             return False
-        return self.on_pose(now_s, stamp_s, position_m, att[0], att[1], att[2])
+        roll, pitch, yaw = quaternion_to_euler(qn[0], qn[1], qn[2], qn[3])
+        return self.on_pose(now_s, stamp_s, position_m, roll, pitch, yaw)
 
     def on_pose(self, now_s: float, stamp_s: float, position_m: Vec3, roll_rad: float,
                 pitch_rad: float, yaw_rad: float) -> bool:

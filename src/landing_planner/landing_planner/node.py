@@ -16,7 +16,6 @@ import sys
 
 from deckland_common.contract import VERTICAL_RELATIVE, ApronState, decode_apron_array
 from deckland_common.frames import euler_to_quaternion
-from deckland_common.params import ParameterError
 from deckland_common.ros_node import (
     LATCHED_QOS,
     RELIABLE_QOS,
@@ -27,10 +26,9 @@ from deckland_common.ros_node import (
     s_to_stamp,
     stamp_to_s,
 )
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, QuaternionStamped, Transform, Twist, TwistStamped
 from nav_msgs.msg import Odometry
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from std_msgs.msg import Bool, Float64MultiArray, String
 from std_srvs.srv import Trigger
@@ -51,10 +49,7 @@ class LandingPlannerNode(GuardedNode, Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('landing_planner', **kwargs)
-        try:
-            p = declare_and_validate(self, PARAMS)
-        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-            raise ParameterError(f'landing_planner: {exc}') from exc
+        p = declare_and_validate(self, PARAMS)
         self.cfg = p
         planner_params, horizontal_params = params_from(p)
         self.core = PlannerLoop(LandingPlanner(planner_params),
@@ -242,10 +237,7 @@ class LandingPlannerNode(GuardedNode, Node):
         values = {'mode': self.planner.mode.name, 'reason': self.planner.reason,
                   'searches': str(self.planner.searches), 'steps_per_s': str(rate),
                   **core.diagnostic_values(now)}
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.pub_diag.publish(msg)
+        self._publish_status(self.pub_diag, status, values)
 
 
 def main(args: list[str] | None = None) -> int:
