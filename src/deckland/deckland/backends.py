@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 import logging
 import multiprocessing as mp
 import os
-import pickle
 import socket
 import sys
 from typing import TYPE_CHECKING, Any
@@ -26,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 from deckland import accel
 
 if TYPE_CHECKING:
-    from deckland.runner import RunConfig, RunResult
+    from deckland.runner import RunResult
 
 BACKENDS = ('local', 'ray')
 
@@ -42,7 +41,7 @@ class Chunk:
     index: int
     scenario: str                 # built-in name, or the label of a YAML file
     scenario_yaml: str | None     # that file's text (a worker need not see the file)
-    config_pickle: bytes          # the RunConfig, unpickled after the cores are loaded
+    config_fields: dict[str, Any]  # the RunConfig as plain data, rebuilt after the cores load
     seeds: tuple[int, ...]
     accel_dir: str | None         # load the compiled cores from here first (None: Python)
 
@@ -76,8 +75,8 @@ def _scenario(name: str, text: str | None) -> Any:
 def run_chunk(chunk: Chunk) -> ChunkResult:
     """Fly every seed of ``chunk`` (in this process) with the driver's cores."""
     accel.worker_init(chunk.accel_dir)
-    from deckland.runner import run_landing
-    config: RunConfig = pickle.loads(chunk.config_pickle)
+    from deckland.runner import config_from_fields, run_landing
+    config = config_from_fields(chunk.config_fields)
     scenario = _scenario(chunk.scenario, chunk.scenario_yaml)
     results = [run_landing(scenario, seed, config) for seed in chunk.seeds]
     where = f'{socket.gethostname()}:{os.getpid()}'

@@ -29,7 +29,6 @@ import argparse
 import json
 import math
 import pathlib
-import pickle
 import sys
 import time
 from typing import Any
@@ -120,7 +119,8 @@ def make_chunks(scenario: str, runs: int, seed: int, config: RunConfig,
     """The campaign's seeds in consecutive chunks, with what a worker needs to fly them."""
     from deck_simulator.scenario import builtin_names
     text = None if scenario in builtin_names() else pathlib.Path(scenario).read_text('utf-8')
-    blob = pickle.dumps(config)
+    from deckland.runner import config_fields
+    blob = config_fields(config)
     seeds = [run_seed(seed, i) for i in range(runs)]
     return [Chunk(k, scenario, text, blob, tuple(seeds[i:i + size]),
                   accel.status().get('dir'))

@@ -61,6 +61,18 @@ class RunConfig:
             raise ValueError('physics_hz must be >= 400 (the Pixhawk attitude loop rate)')
 
 
+def config_fields(config: RunConfig) -> dict[str, Any]:
+    """``config`` as plain data (a worker rebuilds it after loading the compiled cores)."""
+    return asdict(config)
+
+
+def config_from_fields(fields: dict[str, Any]) -> RunConfig:
+    """The inverse of :func:`config_fields` (validated again by the constructors)."""
+    monitor = fields.get('link_monitor')
+    return RunConfig(**{**fields, 'link_monitor':
+                        None if monitor is None else LinkMonitorParams(**monitor)})
+
+
 @dataclass
 class RunResult(RunOutcome):
     """Outcome of one run (a campaign's per-run record): the simulator's outcome record
