@@ -208,6 +208,24 @@ def test_compare_is_the_ratio_of_the_percentiles():
     assert compare(b, b)['within_factor_2'] is True
 
 
+# --- the registry of firmwares ---------------------------------------------------------------
+
+def test_the_registry_names_px4_and_every_entry_loads():
+    from deckland.sitl import SITL_AUTOPILOTS, SitlAutopilot, SitlNotFoundError, register
+    from deckland.sitl.mission import Px4Mission
+    from deckland.sitl.px4 import Px4StartError
+    px4 = SITL_AUTOPILOTS['px4-sitl']
+    assert px4.load('mission') is Px4Mission and px4.load('params') is mission_params
+    assert px4.load('failsafe_check') is failsafe_check and px4.report_key == 'px4'
+    # up/campaign/bench catch the generic errors: PX4's are those
+    assert issubclass(Px4NotFoundError, SitlNotFoundError)
+    assert issubclass(Px4StartError, RuntimeError) and not issubclass(
+        Px4StartError, SitlNotFoundError)
+    for name in ('px4-sitl', 'emulator', 'in-process'):
+        with pytest.raises(ValueError, match='already registered'):
+            register(SitlAutopilot(name, '', *('m:a',) * 4, 'k'))
+
+
 # --- clear errors ----------------------------------------------------------------------------
 
 def test_up_says_when_px4_is_missing(tmp_path):

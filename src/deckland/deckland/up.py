@@ -326,9 +326,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
     hardware = bool(args.hardware)
     if hardware and not (args.mavlink and args.pixy_port):
         return fail('--hardware needs --mavlink URL and --pixy-port DEV')
-    use_px4 = getattr(args, 'autopilot', 'emulator') == 'px4-sitl'
-    if use_px4 and (hardware or args.mavlink):
-        return fail('--autopilot px4-sitl is a simulation (no --hardware, no --mavlink)')
+    from deckland.sitl import sitl_autopilot
+    backend = sitl_autopilot(getattr(args, 'autopilot', 'emulator'))
+    if backend is not None and (hardware or args.mavlink):
+        return fail(f'--autopilot {backend.name} is a simulation (no --hardware, no --mavlink)')
     if not hardware and any(getattr(args, k, None) is not None
                             for k in ('mass_kg', 'hover_thrust_norm', 'thrust_expo')):
         return fail('--mass-kg, --hover-thrust-norm and --thrust-expo are for --hardware '
@@ -344,12 +345,11 @@ def _cmd_up(args: argparse.Namespace) -> int:
         return fail(str(exc))
     nodes = graph['nodes']
     px4 = None
-    if use_px4:
-        from deckland.sitl.mission import Px4Mission, operator_take_off
-        from deckland.sitl.px4 import Px4NotFoundError
+    if backend is not None:   # a firmware in the loop (deckland.sitl.SITL_AUTOPILOTS)
+        from deckland.sitl import SitlNotFoundError
         try:
-            px4 = Px4Mission(scenario, keep_ulog=args.keep_ulog)
-        except (Px4NotFoundError, ValueError) as exc:
+            px4 = backend.load('mission')(scenario, keep_ulog=args.keep_ulog)
+        except (SitlNotFoundError, ValueError) as exc:
             return fail(str(exc))
     names = {n.name for n in nodes}
     kills = node_kill_faults(scenario)
@@ -399,7 +399,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
                 result_code = 3
                 orch.log(report['reason'])
                 raise _EndRunError
-            orch.log(f'PX4 up after {px4.times["up_s"]:.1f} s')
+            orch.log(f'{backend.name} up after {px4.times["up_s"]:.1f} s')
         # on the ground the planner disables the thrust: the command topics flow once in
         # the air (PX4's take-off, below)
         silent = monitor.wait_flowing(args.startup_timeout, abort=startup_abort,
@@ -418,7 +418,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
             if record is not None:
                 recorder = _start_recorder(record, monitor, [
                     t for t in wait_topics if t not in px4.GROUND_SILENT], orch)
-            ok, msg = operator_take_off(px4, monitor, orch.log, stop_requested.is_set)
+            ok, msg = px4.operator_take_off(monitor, orch.log, stop_requested.is_set)
             if ok:
                 silent = monitor.wait_flowing(10.0, abort=startup_abort)
                 ok, msg = not silent, f'silent topics in the air {silent}'
@@ -436,8 +436,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         ok, msg = monitor.trigger('bridge/offboard')
         orch.log(f'offboard: {ok} {msg}')
         if px4 is not None and not px4.wait_mode('OFFBOARD', 5.0, stop_requested.is_set):
-            report = {'success': False, 'reason': f'PX4 did not enter OFFBOARD ({msg}; mode '
-                      f'{px4.operator.mode})'}
+            report = {'success': False, 'reason': f'{backend.name} did not enter OFFBOARD '
+                      f'({msg}; mode {px4.mode})'}
             result_code = 4
             orch.log(report['reason'])
             raise _EndRunError
@@ -527,8 +527,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         report = _finish_report(report, args, hardware, orch, injected, modes, record,
                                 result_code)
         if px4_report is not None:
-            report['autopilot'] = 'px4-sitl'
-            report['px4'] = px4_report
+            report['autopilot'] = backend.name
+            report[backend.report_key] = px4_report
         if record is not None:
             with contextlib.suppress(OSError):
                 record.mkdir(parents=True, exist_ok=True)
@@ -552,16 +552,14 @@ PX4_DISARM_WAIT_S = 20.0
 def _start_px4(px4, nodes, orch: Orchestrator) -> str:
     """PX4 SITL in a fresh directory, the graph pointed at its instance's ports; '' or why
     PX4 could not be started."""
-    from deckland.sitl.px4 import Px4StartError
+    from deckland.sitl import SitlStartError
     try:
         px4.start()
-    except (Px4StartError, OSError) as exc:
+    except (SitlStartError, OSError) as exc:
         orch.log(f'PX4 did not start: {exc}')
         return f'PX4 did not start: {exc}'
     px4.configure_graph(nodes)
-    orch.log(f'PX4 SITL {px4.px4.root} instance {px4.px4.instance} in {px4.px4.workdir} '
-             f"(simulator TCP {px4.ports['simulator_tcp']}, onboard UDP "
-             f"{px4.ports['onboard_remote']}, GCS UDP {px4.ports['gcs_local']})")
+    orch.log(px4.describe())
     return ''
 
 
@@ -640,9 +638,11 @@ def register(sub) -> None:
     p.add_argument('--record', help='record a bag (and report.json) into this directory')
     p.add_argument('--timeout', type=float, default=120.0, help='mission timeout [s]')
     p.add_argument('--startup-timeout', type=float, default=40.0)
-    p.add_argument('--autopilot', choices=('emulator', 'px4-sitl'), default='emulator',
-                   help='what flies the simulated vehicle: the emulated PX4 (default) or PX4 '
-                   'SITL from $DECKLAND_PX4_SITL / ../shared/px4-sitl (PX4 v1.16)')
+    from deckland.sitl import SITL_AUTOPILOTS
+    p.add_argument('--autopilot', choices=('emulator', *SITL_AUTOPILOTS), default='emulator',
+                   help='what flies the simulated vehicle: the emulated PX4 (default) or a '
+                   'firmware in the loop: ' + '; '.join(
+                       f'{a.name}: {a.help}' for a in SITL_AUTOPILOTS.values()))
     p.add_argument('--report', metavar='FILE',
                    help='write report.json here too (no bag needed; deckland campaign '
                    '--autopilot px4-sitl reads it)')

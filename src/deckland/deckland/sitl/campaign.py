@@ -35,9 +35,11 @@ SAFE_ACTION_MODES = {3: 'AUTO.RTL', 4: 'AUTO.LAND', 5: 'AUTO.LOITER'}
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The SITL options of ``deckland campaign`` (used with ``--autopilot px4-sitl``)."""
-    p.add_argument('--autopilot', choices=('in-process', 'px4-sitl'), default='in-process',
-                   help="px4-sitl: every run a 'deckland up --autopilot px4-sitl' mission, "
-                   'one after another in real time (deckland.sitl.campaign)')
+    from deckland.sitl import SITL_AUTOPILOTS
+    p.add_argument('--autopilot', choices=('in-process', *SITL_AUTOPILOTS),
+                   default='in-process',
+                   help="a firmware (e.g. px4-sitl): every run a 'deckland up --autopilot "
+                   "NAME' mission, one after another in real time (deckland.sitl.campaign)")
     p.add_argument('--mission-timeout', type=float, default=120.0,
                    help='px4-sitl: mission timeout after the landing trigger [s]')
     p.add_argument('--retries', type=int, default=2,
@@ -96,7 +98,7 @@ def failsafe_check(report: dict[str, Any], params: dict[str, Any]) -> dict[str, 
 def _mission(scenario: str, seed: int, args, workdir: pathlib.Path) -> dict[str, Any]:
     out = workdir / f'{seed}.json'
     log = workdir / f'{seed}.log'
-    cmd = [sys.executable, '-m', 'deckland.cli', 'up', '--autopilot', 'px4-sitl',
+    cmd = [sys.executable, '-m', 'deckland.cli', 'up', '--autopilot', args.autopilot,
            '--scenario', scenario, '--seed', str(seed), '--timeout',
            str(args.mission_timeout), '--report', str(out)]
     t0 = time.monotonic()
@@ -147,10 +149,12 @@ def run_sitl_campaign(args) -> dict[str, Any]:
 
     from deckland.campaign import run_seed, summarize
     from deckland.runner import RunConfig, run_landing
-    from deckland.sitl.mission import mission_params
+    from deckland.sitl import SITL_AUTOPILOTS
 
+    backend = SITL_AUTOPILOTS[args.autopilot]
+    check = backend.load('failsafe_check')
     scen = load_scenario(args.scenario)
-    params = mission_params(scen)
+    params = backend.load('params')(scen)
     link_fault = any(getattr(f, 'loss_timeout_s', None) is not None for f in scen.faults)
     keep = pathlib.Path(args.keep_runs) if args.keep_runs else None
     workdir = keep or pathlib.Path(tempfile.mkdtemp(prefix='deckland-sitl-campaign-'))
@@ -178,10 +182,11 @@ def run_sitl_campaign(args) -> dict[str, Any]:
         ref_results.append(ref)
         row = {'seed': seed, 'px4': _figures(rec), 'in_process': _figures(ref),
                'lockstep': report.get('lockstep'), 'spoiled': why,
-               'hover_thrust_source': _hover_source(report),
-               'px4_modes': [m['mode'] for m in (report.get('px4') or {}).get('modes', [])]}
+               'hover_thrust_source': _hover_source(report.get(backend.report_key)),
+               'px4_modes': [m['mode'] for m in
+                             (report.get(backend.report_key) or {}).get('modes', [])]}
         if link_fault:
-            row['failsafe_check'] = chk = failsafe_check(report, params)
+            row['failsafe_check'] = chk = check(report, params)
             checks.append(chk)
         per_run.append(row)
         sys.stderr.write(f'{scen.name} px4 {i + 1}/{args.runs} seed {seed}: {rec.outcome} '
@@ -195,7 +200,7 @@ def run_sitl_campaign(args) -> dict[str, Any]:
     for k in ('realtime_factor', 'realtime_factor_per_worker', 'workers'):
         ref_summary.pop(k)
     report.update({
-        'autopilot': 'px4-sitl',
+        'autopilot': backend.name,
         'px4_params': params,
         'in_process': ref_summary,
         'comparison': compare(report, ref_summary),
@@ -204,7 +209,7 @@ def run_sitl_campaign(args) -> dict[str, Any]:
         'machine': {'cpus': os.cpu_count(), 'load_1min_before': round(load0, 2),
                     'load_1min_after': round(os.getloadavg()[0], 2),
                     'niceness': os.nice(0)},
-        'command': 'deckland campaign --autopilot px4-sitl ' + ' '.join(
+        'command': f'deckland campaign --autopilot {backend.name} ' + ' '.join(
             f'--{k.replace("_", "-")} {v}' for k, v in (
                 ('scenario', args.scenario), ('runs', args.runs), ('seed', args.seed))),
     })
@@ -219,31 +224,30 @@ def run_sitl_campaign(args) -> dict[str, Any]:
     return report
 
 
-def _hover_source(report: dict[str, Any]) -> str:
+def _hover_source(firmware: dict[str, Any] | None) -> str:
     """Where the bridge's hover thrust came from: measured in PX4's loiter, or MPC_THR_HOVER
-    when PX4's loiter was not steady enough."""
-    h = (report.get('px4') or {}).get('hover_thrust_measured')
+    when PX4's loiter was not steady enough (``firmware``: the mission report's PX4 record)."""
+    h = (firmware or {}).get('hover_thrust_measured')
     return f'measured {h:.4f}' if isinstance(h, float) else 'MPC_THR_HOVER'
 
 
 def cmd_sitl_campaign(args) -> int:
     """``deckland campaign --autopilot px4-sitl``: run, print, write ``--out``."""
     from deckland.campaign import format_table
-    from deckland.sitl.px4 import Px4NotFoundError, find_px4
+    from deckland.sitl import SITL_AUTOPILOTS, SitlNotFoundError
 
+    backend = SITL_AUTOPILOTS[args.autopilot]
     try:
-        if find_px4() is None:
-            raise Px4NotFoundError('PX4 SITL not found: set DECKLAND_PX4_SITL to a PX4 v1.16 '
-                                   'build/px4_sitl_default folder (or ../shared/px4-sitl)')
-    except Px4NotFoundError as exc:
+        backend.load('find')()
+    except SitlNotFoundError as exc:
         print(f'deckland campaign: {exc}', file=sys.stderr)
         return 2
     if args.compare or args.controller != 'dob':
-        print('deckland campaign: --autopilot px4-sitl flies the graph (controller dob)',
+        print(f'deckland campaign: --autopilot {backend.name} flies the graph (controller dob)',
               file=sys.stderr)
         return 2
     report = run_sitl_campaign(args)
-    print(format_table([{**report, 'controller': 'px4-sitl'},
+    print(format_table([{**report, 'controller': backend.name},
                         {**report['in_process'], 'controller': 'in-process',
                                  'wall_time_s': 0.0, 'realtime_factor': 0.0}]))
     print(f"comparison (PX4 / in-process): {json.dumps(report['comparison'])}")

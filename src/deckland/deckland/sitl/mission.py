@@ -408,6 +408,26 @@ class Px4Mission:
             self.hover = seen['h']
         return seen['h']
 
+    def operator_take_off(self, monitor, log, abort=None) -> tuple[bool, str]:
+        """:func:`operator_take_off` with this PX4 (the registry's mission interface)."""
+        return operator_take_off(self, monitor, log, abort)
+
+    @property
+    def mode(self) -> str:
+        """PX4's mode as the operator sees it ('' before its first heartbeat)."""
+        return self.operator.mode if self.operator is not None else ''
+
+    def cpu_s(self) -> float:
+        """PX4's CPU time so far (user + system, seconds)."""
+        return self.px4.cpu_s()
+
+    def describe(self) -> str:
+        """One log line: which PX4, where, on which ports."""
+        p = self.ports
+        return (f'PX4 SITL {self.px4.root} instance {self.px4.instance} in {self.px4.workdir} '
+                f"(simulator TCP {p['simulator_tcp']}, onboard UDP {p['onboard_remote']}, "
+                f"GCS UDP {p['gcs_local']})")
+
     def wait_mode(self, mode: str, timeout_s: float, abort=None) -> bool:
         """PX4 reports ``mode`` (e.g. ``'OFFBOARD'``) within ``timeout_s``."""
         op = self.operator
