@@ -47,6 +47,9 @@ MAV_CMD_NAV_TAKEOFF = 22
 MAV_LANDED_STATE_ON_GROUND = 1
 #: planner modes that show it took planner/takeoff (landing_planner's Mode names)
 TAKEOFF_TAKEN = ('TAKEOFF', 'HOLD')
+#: planner/takeoff's wait for the planner (5 s timed out twice at load 43 on 2 cores: the
+#: planner had not run; PX4 loiters meanwhile, so waiting longer costs nothing)
+TAKEOFF_TRIGGER_TIMEOUT_S = 15.0
 
 
 def mission_params(scenario: Scenario, hil: HilParams | None = None) -> dict[str, float | int]:
@@ -487,7 +490,7 @@ def operator_take_off(px4: Px4Mission, monitor, log, abort=None) -> tuple[bool, 
     log(f"bridge: hover thrust measured in PX4's hover {hover:.4f}" if math.isfinite(hover)
         else f"bridge: no steady hover thrust in PX4's hover within {HOVER_WAIT_S:g} s "
         '(MPC_THR_HOVER is used)')
-    ok, msg = monitor.trigger('planner/takeoff')
+    ok, msg = monitor.trigger('planner/takeoff', timeout_s=TAKEOFF_TRIGGER_TIMEOUT_S)
     if not ok and 'timed out' in msg and _wait(
             lambda: monitor.mode in TAKEOFF_TAKEN, 3.0, abort, 0.1):
         # the planner took it (planner/mode says so) but its reply was lost: a DDS reply
