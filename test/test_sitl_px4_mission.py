@@ -55,6 +55,9 @@ def test_mission_params_carry_the_scenarios_failsafe_to_px4():
     assert p['COM_OF_LOSS_T'] == f.loss_timeout_s == 0.3
     assert p['RTL_RETURN_ALT'] == p['RTL_DESCEND_ALT'] == f.min_alt_m == 2.0
     assert p['MPC_LAND_SPEED'] == f.land_speed_mps == 0.5 and p['RTL_LAND_DELAY'] == 0.0
+    # home (1.7 m from the deck) is not "reached" at once, and PX4 climbs before it returns
+    assert p['NAV_ACC_RAD'] < 0.5 and p['RTL_MIN_DIST'] == 0.0 and p['RTL_CONE_ANG'] == 0
+    assert 'NAV_ACC_RAD' not in paper
     assert wire_faults(sc) and not wire_faults(load_scenario('fault_node_kill'))
     kill = mission_params(load_scenario(str(BRIDGE_KILL)))
     assert kill['COM_OBL_RC_ACT'] == OBL_RETURN and kill['COM_OF_LOSS_T'] == 0.3
