@@ -120,6 +120,7 @@ class Operator:
         self.landed_state = 0
         self.local_ned: tuple[float, float, float] | None = None
         self.origin: tuple[int, int, int] | None = None
+        self.home_ned: tuple[float, float, float] | None = None   # PX4's home, local NED
         self.modes: list[tuple[float, str, bool]] = []
         self.texts: list[tuple[float, str]] = []
         self.acks: list[tuple[float, int, int]] = []
@@ -161,6 +162,8 @@ class Operator:
             self.landed_state = int(m.landed_state)
         elif kind == 'LOCAL_POSITION_NED':
             self.local_ned = (float(m.x), float(m.y), float(m.z))
+        elif kind == 'HOME_POSITION':
+            self.home_ned = (float(m.x), float(m.y), float(m.z))
         elif kind == 'GPS_GLOBAL_ORIGIN':
             self.origin = (int(m.latitude), int(m.longitude), int(m.altitude))
         elif kind == 'STATUSTEXT':
@@ -392,6 +395,7 @@ class Px4Mission:
             return False, (f'PX4 not loitering at {alt:g} m after its take-off (mode '
                            f'{op.mode}, local position {op.local_ned})')
         self.times['loiter_s'] = time.monotonic() - self._t0
+        op.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
         return True, f'PX4 loiters at {-op.local_ned[2]:.2f} m'
 
     def wait_hover_measured(self, node, timeout_s: float = 30.0, abort=None) -> float:
@@ -478,6 +482,10 @@ class Px4Mission:
             'armed_at_end': op.armed if op is not None else None,
             'landed_state_at_end': op.landed_state if op is not None else None,
             'mode_at_end': op.mode if op is not None else '',
+            # PX4's home (where a Return lands) in the world's ENU map frame (PX4's local
+            # frame is the world's, origin shared: x east = NED y)
+            'home_map_m': None if op is None or op.home_ned is None else [
+                round(op.home_ned[1], 3), round(op.home_ned[0], 3), round(-op.home_ned[2], 3)],
             'modes': self.modes_since(t_ref) if op is not None else [],
             'statustext': [t for _, t in op.texts[-12:]] if op is not None else [],
             'px4_cpu_s': round(self.px4.cpu_s(), 1),
