@@ -211,6 +211,47 @@ def test_compare_is_the_ratio_of_the_percentiles():
     assert compare(b, b)['within_factor_2'] is True
 
 
+class _Monitor:
+    """MissionMonitor's trigger and planner/mode, scripted."""
+
+    def __init__(self, answers, mode_after=None):
+        self.answers, self.calls, self.mode, self.node = list(answers), 0, 'IDLE', None
+        self.mode_after = mode_after
+
+    def trigger(self, service, timeout_s=5.0):
+        self.calls += 1
+        if self.mode_after is not None and self.calls >= self.mode_after:
+            self.mode = 'TAKEOFF'
+        return self.answers.pop(0)
+
+
+class _Px4:
+    def take_off(self, abort=None):
+        return True, 'PX4 loiters at 2.00 m'
+
+    def wait_hover_measured(self, node, timeout_s, abort=None):
+        return math.nan
+
+
+def test_the_operator_asks_the_planner_again_when_a_reply_is_lost():
+    from deckland.sitl.mission import TAKEOFF_TRIGGER_ATTEMPTS, operator_take_off
+    lost = (False, 'service planner/takeoff timed out')
+    # no reply and planner/mode unchanged: asked again, the second call answers
+    mon = _Monitor([lost, (True, 'taking off')])
+    assert operator_take_off(_Px4(), mon, lambda _t: None) == (True, 'taking off')
+    assert mon.calls == 2
+    # no reply but planner/mode shows the take-off: not asked again
+    mon = _Monitor([lost], mode_after=1)
+    ok, msg = operator_take_off(_Px4(), mon, lambda _t: None)
+    assert ok and 'reply lost' in msg and mon.calls == 1
+    # a refusal is final; so is silence every time
+    mon = _Monitor([(False, 'not in IDLE')])
+    assert operator_take_off(_Px4(), mon, lambda _t: None)[0] is False and mon.calls == 1
+    mon = _Monitor([lost] * TAKEOFF_TRIGGER_ATTEMPTS)
+    ok, msg = operator_take_off(_Px4(), mon, lambda _t: None)
+    assert not ok and 'timed out' in msg and mon.calls == TAKEOFF_TRIGGER_ATTEMPTS
+
+
 # --- the registry of firmwares ---------------------------------------------------------------
 
 def test_the_registry_names_px4_and_every_entry_loads():
