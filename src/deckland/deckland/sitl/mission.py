@@ -267,6 +267,7 @@ class Px4Mission:
         self.times: dict[str, float] = {}
         self.param_fixes: dict[str, float | None] = {}
         self.hover: float | None = None     # the bridge's hover thrust measured in PX4's loiter
+        self._subs: list[Any] = []          # rclpy subscriptions on the monitor's node
         self._t0 = math.nan
 
     # --- lifecycle ---------------------------------------------------------------------
@@ -416,11 +417,13 @@ class Px4Mission:
                         with contextlib.suppress(ValueError):
                             seen['h'] = float(kv.value)
 
-        sub = node.create_subscription(DiagnosticArray, 'diagnostics', on_diag, RELIABLE_QOS)
-        try:
-            _wait(lambda: math.isfinite(seen['h']), timeout_s, abort, 0.1)
-        finally:
-            node.destroy_subscription(sub)
+        # kept until the node goes (not destroyed here): destroying a subscription from this
+        # thread while the monitor's executor spins it can end that executor's thread, and
+        # then no service reply and no planner/mode reaches the monitor any more (suspected
+        # in the planner/takeoff time-outs at load 10-50)
+        self._subs.append(node.create_subscription(DiagnosticArray, 'diagnostics', on_diag,
+                                                   RELIABLE_QOS))
+        _wait(lambda: math.isfinite(seen['h']), timeout_s, abort, 0.1)
         if math.isfinite(seen['h']):
             self.times['hover_measured_s'] = time.monotonic() - self._t0
             self.hover = seen['h']
