@@ -3,10 +3,11 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.deckland-installed
+RAY_STAMP := $(VENV)/.deckland-ray-installed
 PKGS := $(sort $(wildcard src/*/setup.py))
 SCENARIO ?= paper
 
-.PHONY: setup accel run test lint golden bench clean
+.PHONY: setup setup-ray accel run test lint golden bench clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -67,6 +68,13 @@ $(IFACE_STAMP): $(IFACE_SRC) requirements.txt | $(STAMP)
 
 setup: $(STAMP) $(IFACE_STAMP)
 
+# The optional Ray backend (campaigns on a cluster): its tests need it, `make run` does not.
+$(RAY_STAMP): $(STAMP) requirements-ray.txt
+	$(PY) -m pip install --quiet -r requirements-ray.txt
+	touch $(RAY_STAMP)
+
+setup-ray: $(RAY_STAMP)
+
 # The compiled cores for batch runs (deckland.accel, mypyc): rebuilt only when a compiled
 # source changed. Campaigns run ~3x faster with them; they fall back to the sources without.
 accel: setup
@@ -75,7 +83,7 @@ accel: setup
 run: setup
 	$(VENV)/bin/deckland up --scenario $(SCENARIO) --record runs/latest
 
-test: setup accel
+test: setup setup-ray accel
 	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test
 
 lint: setup
@@ -83,7 +91,7 @@ lint: setup
 
 # Deliberate only (never run by tests): fly the reference landing and rewrite the golden bag.
 golden: setup
-	$(PY) -m deckland.golden record test/fixtures/golden_paper
+	$(PY) test/golden.py record test/fixtures/golden_paper
 
 clean:
 	rm -rf $(VENV) runs build install log .pytest_cache

@@ -4,7 +4,7 @@ their outputs are compared with the recording within NODE_TOLERANCES."""
 
 from pathlib import Path
 
-from deckland import golden
+import golden
 
 BAG = Path(__file__).parent / 'fixtures' / 'golden_paper'
 
