@@ -88,6 +88,7 @@ test: setup setup-ray accel
 
 lint: setup
 	$(VENV)/bin/ruff check .
+	$(PY) -m mypy
 
 # Deliberate only (never run by tests): fly the reference landing and rewrite the golden bag.
 golden: setup

@@ -295,6 +295,17 @@ def summary_lines(report: dict[str, Any], code: int, record: str | None) -> list
         f'horizontal error  {_fmt(report.get("horizontal_error_m"), "m", 3)}',
         f'time to land      {_fmt(report.get("time_to_land_s"), "s", 1)}',
     ]
+    if report.get('outcome'):     # the landing record (deck_simulator.outcome, campaigns')
+        lines.insert(2, f'class             {report["outcome"]}'
+                     + (' (settled)' if report.get('settled') else ''))
+    if report.get('contact_kind') not in (None, 'none'):
+        tilt = report.get('tilt_rad')
+        tilt_deg = math.degrees(tilt) if isinstance(tilt, int | float) else None
+        lines += [f'lateral speed     {_fmt(report.get("lateral_speed_mps"), "m/s")}',
+                  f'relative tilt     {_fmt(tilt_deg, "deg", 1)}',
+                  f'impacts, bounces  {report.get("impacts", 0)}, {report.get("bounces", 0)} '
+                  f'(fastest {_fmt(report.get("max_impact_speed_mps"), "m/s")}, highest hop '
+                  f'{_fmt(report.get("max_bounce_height_m"), "m", 3)})']
     if report.get('autopilot_modes'):
         lines.append('autopilot modes   ' + ' -> '.join(m['mode'] for m in
                                                         report['autopilot_modes']))
