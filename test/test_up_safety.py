@@ -60,7 +60,8 @@ def socket_parameters(hardware: bool, **kw):
     out = []
     for spec in graph['nodes']:
         for name, value in effective_parameters(spec).items():
-            if isinstance(value, str) and any(w in name for w in SOCKET_WORDS):
+            # an empty one opens no socket (deck_simulator's px4_onboard_url: no relay)
+            if isinstance(value, str) and value and any(w in name for w in SOCKET_WORDS):
                 out.append((spec.name, name, value))
     return graph, out
 
