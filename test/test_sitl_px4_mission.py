@@ -306,7 +306,7 @@ def test_up_says_when_px4_does_not_come_up(tmp_path):
 # --- with PX4 --------------------------------------------------------------------------------
 
 SITL = [pytest.mark.sitl, pytest.mark.ros, pytest.mark.slow,
-        pytest.mark.skipif(PX4_ROOT is None, reason=NO_PX4)]
+        pytest.mark.skipif(PX4_ROOT is None, reason=NO_PX4), pytest.mark.sitl_mission]
 
 
 def _fly(tmp_path, scenario, seed, *extra):
@@ -323,6 +323,7 @@ def _fly(tmp_path, scenario, seed, *extra):
 @SITL[1]
 @SITL[2]
 @SITL[3]
+@SITL[4]
 def test_up_px4_sitl_lands_on_the_deck_and_cleans_up(tmp_path):
     ulog = tmp_path / 'ulog'
     res, report, log = _fly(tmp_path, 'paper', 100001, '--keep-ulog', str(ulog))
@@ -347,6 +348,7 @@ def test_up_px4_sitl_lands_on_the_deck_and_cleans_up(tmp_path):
 @SITL[1]
 @SITL[2]
 @SITL[3]
+@SITL[4]
 def test_up_px4_sitl_link_loss_ends_in_pxs_return_landed_and_disarmed(tmp_path):
     res, report, log = _fly(tmp_path, 'fault_mavlink_link_loss', 100000)
     chk = failsafe_check(report, mission_params(load_scenario('fault_mavlink_link_loss')))
