@@ -180,6 +180,9 @@ class LiveView:
         # latest raw message of each scene input (callbacks and the scene timer share the
         # view's single-threaded executor: no lock)
         self._latest: dict[str, tuple[type, bytes]] = {}
+        # the last message of each latched (transient local) topic, logged again every
+        # second: a client connecting after a mode change still sees the mode
+        self._latched: dict[str, bytes] = {}
 
     @property
     def port(self) -> int:
@@ -198,6 +201,7 @@ class LiveView:
         self._discover()
         node.create_timer(self._discovery_period_s, self._discover)
         node.create_timer(1.0 / self.rate_hz, self._publish_scene)
+        node.create_timer(1.0, self._relog_latched)
         self._session.spin_in_thread()
         return self
 
@@ -245,19 +249,28 @@ class LiveView:
             self.channels[topic] = channel
             self.forwarded[topic] = 0
             qos = rosio.subscription_qos(pub_qos, 'auto')
+            latched = any(rosio._policy_name(q.durability) == 'transient_local'
+                          for q in pub_qos)
             self._subs[topic] = session.node.create_subscription(
-                cls, topic, self._forwarder(topic, channel, cls), qos, raw=True)
+                cls, topic, self._forwarder(topic, channel, cls, latched), qos, raw=True)
 
-    def _forwarder(self, topic: str, channel: Any, cls: type) -> Any:
+    def _forwarder(self, topic: str, channel: Any, cls: type, latched: bool) -> Any:
         rel = relative_name(topic)
-        forwarded, latest = self.forwarded, self._latest
+        forwarded, latest, last = self.forwarded, self._latest, self._latched
 
         def callback(data: bytes) -> None:
             forwarded[topic] += 1
             channel.log(data, log_time=time.time_ns())
             if rel is not None:
                 latest[rel] = (cls, data)
+            if latched:
+                last[topic] = data
         return callback
+
+    def _relog_latched(self) -> None:
+        now = time.time_ns()
+        for topic, data in self._latched.items():
+            self.channels[topic].log(data, log_time=now)
 
     def _publish_scene(self) -> None:
         from rclpy.serialization import deserialize_message
