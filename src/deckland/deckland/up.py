@@ -382,6 +382,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     recorder = None
     monitor = None
+    view = None
     result_code = 1
     report: dict[str, Any] = {}
     t_trigger: float | None = None
@@ -397,6 +398,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         orch.start()
         expect = {} if scenario is None else {'scenario': scenario.name, 'seed': args.seed}
         monitor = MissionMonitor(graph.get('wait_for_topics', []), expect=expect)
+        if args.foxglove is not None:
+            view = _start_view(args, scenario, monitor, orch)
 
         def startup_abort() -> bool:
             orch.check()
@@ -520,6 +523,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
         if recorder is not None:
             with contextlib.suppress(Exception):
                 recorder.stop()
+        if view is not None:
+            with contextlib.suppress(Exception):
+                view.stop()
         if monitor is not None:
             modes = [{'t_s': round(t - (t_trigger or t), 3), 'mode': m}
                      for t, m in monitor.vehicle_modes
@@ -572,6 +578,17 @@ def _start_px4(px4, nodes, orch: Orchestrator) -> str:
     px4.configure_graph(nodes)
     orch.log(px4.describe())
     return ''
+
+
+def _start_view(args: Any, scenario: Any, monitor: MissionMonitor, orch: Orchestrator) -> Any:
+    """The live Foxglove view (``--foxglove``) on the monitor's context."""
+    from deckland.viz import LiveView
+
+    pad = None if scenario is None else tuple(scenario.apron.size_m)
+    view = LiveView(host=args.foxglove_host, port=args.foxglove, pad_size_m=pad,
+                    context=monitor.context).start()
+    orch.log(f'Foxglove: open connection ws://{args.foxglove_host}:{view.port}')
+    return view
 
 
 def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: list[str],
@@ -647,6 +664,10 @@ def register(sub) -> None:
     p.add_argument('--params', help='ROS 2 parameters YAML passed to every node')
     p.add_argument('--graph', help='graph YAML (default: the packaged graph)')
     p.add_argument('--record', help='record a bag (and report.json) into this directory')
+    p.add_argument('--foxglove', type=int, nargs='?', const=8765, default=None, metavar='PORT',
+                   help='serve a live Foxglove view on this WebSocket port (default 8765)')
+    p.add_argument('--foxglove-host', default='127.0.0.1',
+                   help='bind address of the Foxglove view (default 127.0.0.1, loopback)')
     p.add_argument('--timeout', type=float, default=120.0, help='mission timeout [s]')
     p.add_argument('--startup-timeout', type=float, default=40.0)
     from deckland.sitl import SITL_AUTOPILOTS
