@@ -205,7 +205,8 @@ class SimulationLoop:
             if self._take('control', t):
                 self._control(t)
         else:
-            if self._faults_dormant and self.trigger_t_s is not None:
+            if self._faults_dormant and self.trigger_t_s is not None \
+                    and world.faults is not None:
                 self._faults_dormant = False
                 world.faults.start_at(self.trigger_t_s)
             if self.relay is not None:
@@ -221,6 +222,8 @@ class SimulationLoop:
 
     def _telemetry(self, t: float) -> None:
         world = self.world
+        emulator = self.emulator
+        assert emulator is not None   # telemetry is scheduled only with the emulator
         pos, vel = world.read_local_position()
         roll, pitch, yaw = world.read_attitude()
         ax, ay, az = world.read_accel_world()
@@ -229,7 +232,7 @@ class SimulationLoop:
         # specific force in body FLU (REP-145): Rᵀ (a + g e3)
         accel_body = mat_t_vec(rot_body_to_world(tr.roll_rad, tr.pitch_rad, tr.yaw_rad),
                                (ax, ay, az + self._g))
-        self.emulator.publish_state(t, pos, vel, roll, pitch, yaw, rates, accel_body,
+        emulator.publish_state(t, pos, vel, roll, pitch, yaw, rates, accel_body,
                                     self._range_m, world.resting_on is not None)
 
     def _camera(self) -> None:
@@ -244,7 +247,9 @@ class SimulationLoop:
 
     def _relay(self) -> None:
         """The companion <-> firmware link (every sub-step), through the wire faults."""
-        companion, fw = self.relay
+        relay = self.relay
+        assert relay is not None
+        companion, fw = relay
         for data, addr in companion.receive():
             companion.set_peer(addr)
             fw.send(data)
@@ -255,7 +260,9 @@ class SimulationLoop:
             self.counters['relayed_down'] += 1
 
     def _control(self, t: float) -> None:
-        self.emulator.update(t)   # bytes from the wire: setpoints, commands (bad ones counted)
+        emulator = self.emulator
+        assert emulator is not None
+        emulator.update(t)   # bytes from the wire: setpoints, commands (bad ones counted)
         self.last_kind = kind = self.autopilot.kind
         self.counters['offboard_steps' if kind == 'offboard' else 'autopilot_steps'] += 1
 
