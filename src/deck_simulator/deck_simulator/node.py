@@ -55,6 +55,9 @@ PARAMS = [
               "listening there (bridge default 'udpin:127.0.0.1:14540'); 'udpin:HOST:PORT' "
               "listens for a bridge configured 'udpout:HOST:PORT'", is_mavlink_url,
               "must be 'udpin:IPV4:PORT' or 'udpout:IPV4:PORT'"),
+    in_range('mavlink_fd', -1, -1, 65535, 'an inherited UDP socket already bound to the '
+             'udpin mavlink_url (deckland up binds it before starting the graph); -1: bind '
+             'it here'),
     ParamSpec('pixy_udp_address', '127.0.0.1', "where pixy_driver listens (its "
               "'udp_bind_address')", is_ipv4, 'must be an IPv4 literal'),
     in_range('pixy_udp_port', 14600, 1, 65535, "pixy_driver's 'udp_port'"),
@@ -117,7 +120,7 @@ class DeckSimulatorNode(Node):
         except ValueError as exc:
             raise ParameterError(f"parameter 'scenario': {exc}") from None
         try:
-            link = make_mavlink_link(p['mavlink_url'])
+            link = make_mavlink_link(p['mavlink_url'], p['mavlink_fd'])
         except OSError as exc:
             raise ParameterError(f"parameter 'mavlink_url' = {p['mavlink_url']!r}: cannot "
                                  f'open the socket: {exc}') from None

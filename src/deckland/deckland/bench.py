@@ -340,16 +340,16 @@ def _fmt_target(t: dict) -> str:
 # --- the MAVLink tap (its own process) -------------------------------------------------------
 
 def tap_main(argv: Sequence[str]) -> int:
-    """``LISTEN_PORT SIM_PORT OUT_FILE``: relay UDP between the bridge and the simulator on
-    127.0.0.1, record ``arrival_s time_boot_ms`` of each SET_ATTITUDE_TARGET; write them to
-    OUT_FILE on SIGINT/SIGTERM."""
-    listen_port, sim_port, out_path = int(argv[0]), int(argv[1]), argv[2]
+    """``LISTEN_FD SIM_PORT OUT_FILE``: relay UDP between the bridge and the simulator on
+    127.0.0.1 (listening on the inherited, already bound socket LISTEN_FD), record
+    ``arrival_s time_boot_ms`` of each SET_ATTITUDE_TARGET; write them to OUT_FILE on
+    SIGINT/SIGTERM."""
+    listen_fd, sim_port, out_path = int(argv[0]), int(argv[1]), argv[2]
     sim_addr = ('127.0.0.1', sim_port)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(('127.0.0.1', listen_port))
+    sock = socket.socket(fileno=listen_fd)
     sock.settimeout(0.1)
     bridge_addr = None
     records: list[tuple[float, int]] = []
@@ -434,18 +434,23 @@ def _url_port(url: str) -> int:
 
 def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, dict]:
     """Start the graph with the tap, measure for ``args.duration`` s, return (status, report)."""
+    from deckland.up import UdpReservations
+
+    udp = UdpReservations()
+    try:
+        return _run_latency_bench(args, udp, out)
+    finally:
+        udp.close()
+
+
+def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
     from deckland.orchestrator import Orchestrator, load_graph
-    from deckland.up import (
-        MissionMonitor,
-        default_graph_path,
-        free_udp_port,
-        graph_substitutions,
-    )
+    from deckland.up import MissionMonitor, default_graph_path, graph_substitutions
 
     subs = graph_substitutions(types.SimpleNamespace(
         scenario=args.scenario, seed=args.seed, hardware=False, mavlink=None, pixy_port=None,
-        area=(0.0, 0.0)))
-    tap_port = free_udp_port()
+        area=(0.0, 0.0)), udp)
+    tap_port, tap_fd = udp.bind()
     subs['mavlink_url'] = f'udpout:127.0.0.1:{tap_port}'   # bridge -> tap -> simulator
     graph = load_graph(args.graph or default_graph_path(), subs, hardware=False)
     workdir = tempfile.mkdtemp(prefix='deckland_bench_')
@@ -454,22 +459,31 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
     clk_tck = os.sysconf('SC_CLK_TCK')
     status, report = 1, {}
     with open(log_path, 'w') as log:
-        orch = Orchestrator(graph['nodes'], out=log, stop_timeout_s=5.0)
+        nodes = graph['nodes']
+        if getattr(args, 'composed', False):
+            from deckland.composed import compose
+            nodes = compose(nodes)
+        orch = Orchestrator(nodes, out=log, stop_timeout_s=5.0, pass_fds=udp.fds())
         tap = subprocess.Popen(
             [sys.executable, '-c', 'import sys; from deckland.bench import tap_main; '
-             'sys.exit(tap_main(sys.argv[1:]))', str(tap_port),
+             'sys.exit(tap_main(sys.argv[1:]))', str(tap_fd),
              str(_url_port(subs['sim_mavlink_url'])), tap_out],
-            stdin=subprocess.DEVNULL, start_new_session=True)
+            stdin=subprocess.DEVNULL, start_new_session=True, pass_fds=(tap_fd,))
         monitor = None
         try:
             orch.start()
             monitor = MissionMonitor(graph.get('wait_for_topics', []))
             recorder = StreamRecorder(monitor.node)
-            silent = monitor.wait_flowing(args.startup_timeout)
-            if silent:
-                out.write(f'topics not flowing after {args.startup_timeout:.0f} s: {silent} '
-                          f'(log: {log_path})\n')
+            t_start = time.monotonic()
+            not_ready = orch.wait_ready(args.startup_timeout)
+            silent = [] if not_ready else monitor.wait_flowing(
+                args.startup_timeout - (time.monotonic() - t_start))
+            if not_ready or silent:
+                out.write(f'start-up failed after {args.startup_timeout:.0f} s: not ready '
+                          f'{not_ready}, silent topics {silent}, device problems '
+                          f'{orch.device_problems()} (log: {log_path})\n')
                 return 3, {}
+            startup_s = time.monotonic() - t_start
             pids = {p.spec.name: p.proc.pid for p in orch.procs}
             land_after = (max(0.0, args.duration - 15.0) if args.land_after is None
                           else args.land_after)
@@ -500,6 +514,7 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
             if monitor is not None:
                 monitor.close()
             orch.stop()
+            orch.close()
             tap.send_signal(signal.SIGTERM)
             try:
                 tap.wait(timeout=3.0)
@@ -512,10 +527,12 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
     cpu = {n: cpu_percent(ticks0[n], ticks1[n], wall, clk_tck) for n in pids}
     extra = {
         'scenario': args.scenario, 'seed': args.seed,
+        'composed': bool(getattr(args, 'composed', False)),
         'instrumentation_cpu_percent': {'mavlink_tap': cpu_percent(tap0, tap1, wall, clk_tck)},
         'landing': None if outcome is None else {
             k: outcome.get(k) for k in ('success', 'reason', 'time_to_land_s')},
         'crashed_nodes': [{'node': n, 'status': c} for n, c in crashed],
+        'startup_s': round(startup_s, 3),
         'log': log_path,
         'machine': {'cpus': os.cpu_count(), 'loadavg_1min_before': load0[0],
                     'loadavg_1min_after': os.getloadavg()[0]},
@@ -569,6 +586,8 @@ def register(sub) -> None:
     lat.add_argument('--graph', help='graph YAML (default: the packaged graph)')
     lat.add_argument('--log', help='node output log (default: a file in a temp directory)')
     lat.add_argument('--startup-timeout', type=float, default=40.0)
+    lat.add_argument('--composed', action='store_true',
+                     help='the stack nodes in one process (as deckland up --composed)')
     lat.set_defaults(func=_cmd_latency)
 
 

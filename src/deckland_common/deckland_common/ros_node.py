@@ -10,7 +10,9 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 import math
 import os
+import signal
 import sys
+import threading
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -29,6 +31,7 @@ from rclpy.qos import (
 
 from deckland_common.checks import InputGuard
 from deckland_common.params import ParameterError, ParamSpec, validate
+from deckland_common.readiness import write_ready
 
 #: High-rate sensor streams (camera blocks, lidar, IMU): best effort, keep last 5.
 SENSOR_QOS = qos_profile_sensor_data
@@ -137,9 +140,9 @@ class GuardedNode:
 #: ``single`` (rclpy's SingleThreadedExecutor, the fallback).
 EXECUTOR_ENV = 'DECKLAND_EXECUTOR'
 EXECUTORS = ('events', 'single')
-#: Longest wait of one ``spin_once`` of the events executor (s); only bounds how fast a
-#: shutdown that did not wake the executor is noticed.
-SPIN_ONCE_TIMEOUT_S = 0.5
+#: Longest wait of one ``spin_once`` (s): bounds how long a SIGINT/SIGTERM waits to be seen
+#: (the Python handler runs when ``spin_once`` returns to the interpreter).
+SPIN_ONCE_TIMEOUT_S = 0.1
 
 
 def executor_kind(environ: dict | None = None) -> str:
@@ -155,43 +158,84 @@ def executor_kind(environ: dict | None = None) -> str:
     return kind
 
 
-def spin(node: Node, kind: str = 'events') -> None:
-    """Spin ``node`` until its context shuts down.
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (installed only in the main thread).
+
+    The nodes run with rclpy's own handlers off (``SignalHandlerOptions.NO``): rclpy's shut
+    the context down from its signal thread while a callback may still be publishing
+    (``publisher's context is invalid``). Here a signal only asks the spin loop to end; the
+    executor is shut down first, then the nodes, then the context.
+    """
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def notify_ready(node: Node) -> None:
+    """Tell the orchestrator that ``node`` is built and spins next (:mod:`.readiness`).
+
+    ``problem`` is the node's ``device_problem()`` (a device it could not open), empty when
+    all is well. Without ``$DECKLAND_READY_FD`` (``ros2 run``, tests) nothing is written.
+    """
+    probe = getattr(node, 'device_problem', None)
+    write_ready(node.get_name(), str(probe()) if callable(probe) else '')
+
+
+def spin_nodes(nodes: list[Node], kind: str = 'events',
+               stop: threading.Event | None = None) -> None:
+    """Spin ``nodes`` (one context) on one executor until ``stop`` is set or the context ends.
 
     ``events``: ``rclpy.experimental.EventsExecutor`` (C++ event queue, no per-wake wait-set
     rebuild: about a third of the CPU of the SingleThreadedExecutor for the same callbacks).
     Its blocking ``spin()`` never runs timers in this rclpy (7.1.5: the timer thread starves
     while ``spin()`` blocks; checked with a 100 Hz timer that never fired), so it is driven by
     ``spin_once`` in a loop, which runs timers, subscriptions, services and accepts
-    publications from other threads. ``single``: ``rclpy.spin`` (SingleThreadedExecutor).
+    publications from other threads. ``single``: rclpy's SingleThreadedExecutor, same loop.
+    The executor is shut down before returning, so no callback runs once this returns.
     """
+    from rclpy.executors import SingleThreadedExecutor
+    context = nodes[0].context
     if kind == 'single':
-        rclpy.spin(node)
-        return
-    from rclpy.experimental import EventsExecutor
-    context = node.context
-    executor = EventsExecutor(context=context)
-    executor.add_node(node)
+        executor: Any = SingleThreadedExecutor(context=context)
+    else:
+        from rclpy.experimental import EventsExecutor
+        executor = EventsExecutor(context=context)
+    for node in nodes:
+        executor.add_node(node)
+    stop = stop or threading.Event()
     try:
-        while context.ok():
+        while context.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
     finally:
         executor.shutdown(timeout_sec=1.0)
 
 
-def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int:
-    """Standard Jazzy ``main()`` body: init, build, spin, clean shutdown.
+def spin(node: Node, kind: str = 'events', stop: threading.Event | None = None) -> None:
+    """Spin one node: :func:`spin_nodes` with ``[node]``."""
+    spin_nodes([node], kind, stop)
 
-    The executor is :func:`spin`'s ``events`` unless ``$DECKLAND_EXECUTOR=single``. A
-    :class:`ParameterError` while building the node (or a bad ``$DECKLAND_EXECUTOR``) is
-    printed as a clear message and the process exits with status 2 (never a silent default).
+
+def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int:
+    """Standard Jazzy ``main()`` body: init, build, report ready, spin, clean shutdown.
+
+    SIGINT/SIGTERM end the spin (:func:`stop_on_signals`); then the node is destroyed (its
+    threads joined) and only then the context is shut down, so nothing publishes on a dead
+    context. The executor is :func:`spin_nodes`' ``events`` unless
+    ``$DECKLAND_EXECUTOR=single``. A :class:`ParameterError` while building the node (or a bad
+    ``$DECKLAND_EXECUTOR``) is printed as a clear message and the process exits with status 2.
     """
-    rclpy.init(args=args)
+    from rclpy.signals import SignalHandlerOptions
+
+    stop = stop_on_signals()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         kind = executor_kind()
         node = factory()
-        spin(node, kind)
+        notify_ready(node)
+        spin(node, kind, stop)
     except ParameterError as exc:
         print(f'[FATAL] {exc}', file=sys.stderr)
         return 2
