@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -81,6 +82,10 @@ def all_finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+#: shortest interval between two log lines of one rejection / withholding reason (s)
+LOG_THROTTLE_S = 2.0
+
+
 class GuardedNode:
     """Mixin for a node whose pure loop core counts what it rejects and withholds.
 
@@ -108,13 +113,29 @@ class GuardedNode:
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _log_reject(self, reason: str, what: str) -> None:
-        self.get_logger().warn(
-            f'rejected {what}: {reason} ({self.rejected.get(reason, 0)} so far)',
-            throttle_duration_sec=2.0)
+        if self._log_due(f'reject:{reason}'):
+            self.get_logger().warn(
+                f'rejected {what}: {reason} ({self.rejected.get(reason, 0)} so far)')
 
     def _log_withheld(self, reason: str) -> None:
-        self.get_logger().warn(f'{self._withheld_text}: {reason}',
-                               throttle_duration_sec=2.0)
+        if self._log_due(f'withheld:{reason}'):
+            self.get_logger().warn(f'{self._withheld_text}: {reason}')
+
+    def _log_due(self, key: str) -> bool:
+        """At most one line per ``key`` every :data:`LOG_THROTTLE_S` (wall clock).
+
+        Checked here, not with rclpy's ``throttle_duration_sec``: rclpy identifies the call
+        site with ``inspect`` (stat calls on the source files) on *every* call, throttled or
+        not, ~2 ms each on a loaded machine; a node rejecting stale inputs under overload
+        then spent a quarter of its time logging nothing (cProfile of dob_altitude).
+        """
+        times = self.__dict__.setdefault('_log_times', {})
+        now = time.monotonic()
+        last = times.get(key)
+        if last is not None and now - last < LOG_THROTTLE_S:
+            return False
+        times[key] = now
+        return True
 
     def _reject(self, reason: str, what: str) -> None:
         """Count and log a message the node refuses before its core sees it."""
@@ -143,6 +164,9 @@ EXECUTORS = ('events', 'single')
 #: Longest wait of one ``spin_once`` (s): bounds how long a SIGINT/SIGTERM waits to be seen
 #: (the Python handler runs when ``spin_once`` returns to the interpreter).
 SPIN_ONCE_TIMEOUT_S = 0.1
+#: Environment variable: a directory where :func:`spin_nodes` writes a cProfile of the
+#: executor thread's callbacks (``NODE.PID.prof``) when it returns (profiling only).
+PROFILE_ENV = 'DECKLAND_PROFILE_DIR'
 
 
 def executor_kind(environ: dict | None = None) -> str:
@@ -205,11 +229,21 @@ def spin_nodes(nodes: list[Node], kind: str = 'events',
     for node in nodes:
         executor.add_node(node)
     stop = stop or threading.Event()
+    profile_dir = os.environ.get(PROFILE_ENV, '')
+    profiler = None
+    if profile_dir:
+        import cProfile
+        profiler = cProfile.Profile(time.thread_time)   # CPU of this thread, not waits
+        profiler.enable()
     try:
         while context.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
     finally:
         executor.shutdown(timeout_sec=1.0)
+        if profiler is not None:
+            profiler.disable()
+            name = '+'.join(n.get_name() for n in nodes)
+            profiler.dump_stats(os.path.join(profile_dir, f'{name}.{os.getpid()}.prof'))
 
 
 def spin(node: Node, kind: str = 'events', stop: threading.Event | None = None) -> None:
