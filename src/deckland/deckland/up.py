@@ -32,7 +32,7 @@ import threading
 import time
 from typing import Any
 
-from deckland.orchestrator import Orchestrator, describe_status, load_graph
+from deckland.orchestrator import Orchestrator, describe_status, load_graph, members
 
 EXIT_CODES = {
     0: 'landed (simulation: on the deck, no crash; hardware: the planner reached LANDED)',
@@ -462,7 +462,8 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
                 f = pending.pop(0)
                 killed = orch.kill(f.node)
                 injected.append({'type': 'node_kill', 'node': f.node, 'at_s': round(now, 3),
-                                 'planned_s': f.start_s, 'killed': killed})
+                                 'planned_s': f.start_s, 'killed': killed,
+                                 'nodes_lost': members(orch.by_name[f.node].spec)})
                 if math.isfinite(f.end_s):
                     releases.append((f.end_s, f.node))
             for item in [r for r in releases if now >= r[0]]:
