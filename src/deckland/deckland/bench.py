@@ -538,6 +538,11 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
                     'loadavg_1min_after': os.getloadavg()[0]},
     }
     report = build_report(chain, jitter, gaps, cpu, float(subs['pixy_latency_s']), wall, extra)
+    # CPU per setpoint: comparable between runs that streamed at different rates (overload)
+    n_sp = report['counts'].get('setpoints', 0)
+    report['setpoints_per_s'] = n_sp / wall if wall > 0 else 0.0
+    report['cpu_ms_per_setpoint_without_sim'] = (
+        report['cpu_percent']['total_without_sim'] * 10.0 * wall / n_sp if n_sp else None)
     ok = report['samples'] > 0 and not crashed
     status = 0 if ok else 1
     return status, report
