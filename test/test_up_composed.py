@@ -1,6 +1,7 @@
-"""``deckland up --composed`` against the per-process default: the same topics (names and
-types) in the bag and a landing either way; and a node_kill in composed mode takes the whole
-stack process, is reported with every node it held, and ends in the autopilot's failsafe."""
+"""``deckland up --composed`` against the per-process default: the same nodes and topics
+(names and types) on the running graph (no real-time flight needed), the same bag topics and
+a landing either way; and a node_kill in composed mode takes the whole stack
+process, is reported with every node it held, and ends in the autopilot's failsafe."""
 
 import json
 import pathlib
@@ -28,6 +29,71 @@ def fly(tmp_path, name, *extra, scenario='paper', timeout=90):
 
 def topic_types(run):
     return {(t.name.lstrip('/'), t.msgtype) for t in bag_info(run, recover=False).topics}
+
+
+def graph_view(composed: bool, env: dict) -> dict:
+    """Node names and topics (names, types) of the running graph once every node is ready.
+
+    Read from the DDS graph, which discovery threads keep, not the executors: it holds on a
+    loaded machine where a starved composed executor answers no service for a minute. The
+    parameters are the same by construction: the composed nodes get the very ``--ros-args``
+    of the per-process command lines (test_orchestrator_stops.py), parsed by the same rcl."""
+    import argparse
+    import io
+    import time
+
+    from deckland.composed import compose
+    from deckland.orchestrator import Orchestrator, load_graph
+    from deckland.up import UdpReservations, default_graph_path, graph_substitutions
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    udp = UdpReservations()
+    args = argparse.Namespace(scenario='paper', seed=1, hardware=False, mavlink=None,
+                              pixy_port=None, area=(0.0, 0.0))
+    nodes = load_graph(default_graph_path(), graph_substitutions(args, udp), False)['nodes']
+    orch = Orchestrator(compose(nodes) if composed else nodes, out=io.StringIO(), env=env,
+                        pass_fds=udp.fds())
+    context = rclpy.Context()
+    rclpy.init(context=context, args=[], domain_id=int(env['ROS_DOMAIN_ID']))
+    node = rclpy.create_node('viewer', context=context)
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    try:
+        orch.start()
+        assert orch.wait_ready(120.0) == []
+        deadline = time.monotonic() + 90.0
+        names: set = set()
+        while time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+            names = {n for n in node.get_node_names() if n != 'viewer'}
+            if set(STACK) <= names:
+                break
+        topics: set = set()
+        while time.monotonic() < deadline:                # until discovery has settled
+            time.sleep(1.0)
+            seen = {(t.lstrip('/'), tuple(ty)) for t, ty in node.get_topic_names_and_types()
+                    if not t.startswith('/parameter_events') and t != '/rosout'}
+            if seen == topics:
+                break
+            topics = seen
+        return {'nodes': names, 'topics': topics}
+    finally:
+        orch.stop()
+        orch.close()
+        udp.close()
+        ex.shutdown()
+        node.destroy_node()
+        context.try_shutdown()
+
+
+def test_composed_mode_has_the_nodes_and_topics_of_the_per_process_mode():
+    env = isolated_env()
+    composed, per_process = graph_view(True, env), graph_view(False, env)
+    assert set(STACK) | {'deck_simulator'} <= composed['nodes']
+    assert composed['nodes'] == per_process['nodes']
+    assert composed['topics'] == per_process['topics']
+    assert ('control/thrust', ('geometry_msgs/msg/WrenchStamped',)) in composed['topics']
 
 
 def test_composed_mode_lands_with_the_same_topics_as_one_process_per_node(tmp_path):
