@@ -49,7 +49,9 @@ def test_a_signal_stops_every_child_within_5_s_cleanly_and_finishes_the_bag(tmp_
         while any(alive(p) for p in pids) and time.monotonic() - t0 < 10.0:
             time.sleep(0.02)
         children_gone_s = time.monotonic() - t0
-        code = proc.wait(timeout=15.0)
+        # the children are the 5 s requirement; deckland up then finishes the bag and reads
+        # it back (bag_info: 17 s at loadavg 50, most of its own exit time there)
+        code = proc.wait(timeout=60.0)
     finally:
         if proc.poll() is None:
             proc.kill()
