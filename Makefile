@@ -7,7 +7,7 @@ RAY_STAMP := $(VENV)/.deckland-ray-installed
 PKGS := $(sort $(wildcard src/*/setup.py))
 SCENARIO ?= paper
 
-.PHONY: setup setup-ray accel run test lint golden bench clean
+.PHONY: setup setup-ray accel run test test-sitl lint golden bench clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -86,8 +86,13 @@ run: setup
 test: setup setup-ray accel
 	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test
 
+# Whole missions through the real PX4 / ArduPilot SITL (minutes each, needs a quiet machine).
+test-sitl: setup accel
+	$(PY) -m pytest test -m sitl_mission
+
 lint: setup
 	$(VENV)/bin/ruff check .
+	$(PY) -m mypy
 
 # Deliberate only (never run by tests): fly the reference landing and rewrite the golden bag.
 golden: setup

@@ -26,6 +26,7 @@ import time
 from typing import Any
 
 from deckland_common.contract import VehicleDescription
+from deckland_common.messages import apron_state_from_msg, vertical_frame_name
 from deckland_common.stats import percentile
 import yaml
 
@@ -34,7 +35,10 @@ INPUT_TOPICS = ('/pixy/blocks', '/vehicle/imu', '/vehicle/odom', '/vehicle/veloc
                 '/vehicle/range', '/vehicle/landed', '/planner/mode')
 #: Recorded outputs the replays compare against.
 OUTPUT_TOPICS = ('/apron/state', '/planner/reference', '/control/attitude', '/control/thrust',
-                 '/altitude/observer', '/control/enabled')
+                 '/altitude/state', '/control/enabled')
+#: The outputs of a bag recorded before the typed interfaces (``altitude/observer``).
+LEGACY_OUTPUT_TOPICS = tuple('/altitude/observer' if t == '/altitude/state' else t
+                             for t in OUTPUT_TOPICS)
 #: Topics played into the nodes by :func:`replay_nodes` (``planner/mode`` is the planner's
 #: own output: the trigger is a service call instead).
 PLAY_TOPICS = ('/pixy/blocks', '/vehicle/imu', '/vehicle/odom', '/vehicle/velocity',
@@ -159,31 +163,55 @@ def _decode(topic: str, m: Any) -> tuple[str, tuple] | None:
         return 'mode', (str(m.data),)
     if topic == '/control/enabled':
         return 'enabled', (bool(m.data),)
+    if topic in _LEGACY:
+        legacy = _decode_legacy(topic, m)
+        if legacy is not None:
+            return legacy
     if topic == '/apron/state':
-        label = m.layout.dim[0].label if len(m.layout.dim) else ''
-        return 'apron', (tuple(float(x) for x in m.data), label)
+        st, _, detail = apron_state_from_msg(m)
+        if st is None:
+            raise ValueError(f'golden: undecodable {detail}')
+        return 'apron', (tuple(st.to_array()), '')
     if topic == '/planner/reference':
-        pt = m.points[0]
-        tr, r = pt.transforms[0].translation, pt.transforms[0].rotation
-        v, a = pt.velocities[0].linear, pt.accelerations[0].linear
-        name = m.joint_names[0] if len(m.joint_names) else ''
-        return 'reference', (_stamp(m.header), name, (tr.x, tr.y, tr.z), (v.x, v.y, v.z),
-                             a.z, _yaw_of(r.w, r.x, r.y, r.z))
+        sp, ff = m.setpoint_m, m.velocity_ff_mps
+        return 'reference', (_stamp(m.header), vertical_frame_name(m.vertical_frame),
+                             (float(sp[0]), float(sp[1]), m.z_d_m),
+                             (float(ff[0]), float(ff[1]), m.z_d_dot_mps), m.z_d_ddot_mps2,
+                             m.yaw_rad)
     if topic == '/control/attitude':
         q = m.quaternion
         return 'attitude', (_stamp(m.header), (q.w, q.x, q.y, q.z))
     if topic == '/control/thrust':
         return 'thrust', (_stamp(m.header), float(m.wrench.force.z))
-    if topic == '/altitude/observer':
-        v = m.vector
-        return 'observer', (_stamp(m.header), (v.x, v.y, v.z))
+    if topic == '/altitude/state':
+        return 'observer', (_stamp(m.header), (m.sigma, m.d_hat_mps2, m.e_z_m))
     return None
 
 
-def _yaw_of(w: float, x: float, y: float, z: float) -> float:
+def _decode_legacy(topic: str, m: Any) -> tuple[str, tuple] | None:
+    """Outputs of a bag recorded before the typed interfaces (Float64MultiArray apron state,
+    MultiDOFJointTrajectory reference, Vector3Stamped observer), in the same shapes."""
     from deckland_common.frames import quaternion_to_euler
 
-    return quaternion_to_euler(w, x, y, z)[2]
+    if topic == '/altitude/observer':
+        v = m.vector
+        return 'observer', (_stamp(m.header), (v.x, v.y, v.z))
+    if not hasattr(m, 'layout') and not hasattr(m, 'points'):
+        return None                     # the typed message: the caller decodes it
+    if topic == '/apron/state':
+        label = m.layout.dim[0].label if len(m.layout.dim) else ''
+        return 'apron', (tuple(float(x) for x in m.data), label)
+    pt = m.points[0]
+    tr, r = pt.transforms[0].translation, pt.transforms[0].rotation
+    v, a = pt.velocities[0].linear, pt.accelerations[0].linear
+    name = m.joint_names[0] if len(m.joint_names) else ''
+    return 'reference', (_stamp(m.header), name, (tr.x, tr.y, tr.z), (v.x, v.y, v.z), a.z,
+                         quaternion_to_euler(r.w, r.x, r.y, r.z)[2])
+
+
+#: topics whose pre-interfaces encoding :func:`_decode_legacy` still reads (a golden bag
+#: recorded before the switch replays until ``make golden`` re-records it)
+_LEGACY = ('/altitude/observer', '/apron/state', '/planner/reference')
 
 
 @dataclass
@@ -705,7 +733,7 @@ def compare(recorded: Replay, replayed: Replay, tol: Tolerances, *,
     matched['control/thrust'] = (len(th), len(recorded.thrust))
     checks.append(chk('thrust u_z', th, tol.thrust_n))
     ob = _match(recorded.observer, shift(replayed.observer), w)
-    matched['altitude/observer'] = (len(ob), len(recorded.observer))
+    matched['altitude/state'] = (len(ob), len(recorded.observer))
     checks.append(chk('observer sigma, d_hat', ((t, a[i], b[i]) for t, a, b in ob
                                                    for i in (0, 1)), tol.observer))
     checks.append(chk('observer e_z', ((t, a[2], b[2]) for t, a, b in ob), tol.ref_z_m))
@@ -979,12 +1007,13 @@ def _replay_into(golden: Golden, bag_dir: Any, context: Any, executor: Any, orch
     import threading
 
     from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
-    from geometry_msgs.msg import QuaternionStamped, Vector3Stamped, WrenchStamped
+    from geometry_msgs.msg import QuaternionStamped, WrenchStamped
     import rclpy
     from sensor_msgs.msg import Imu
-    from std_msgs.msg import Bool, Float64MultiArray, String
+    from std_msgs.msg import Bool, String
     from std_srvs.srv import Trigger
-    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from deckland_interfaces.msg import AltitudeState, ApronState, PlannerReference
 
 
     helper = rclpy.create_node('golden_collector', context=context)
@@ -998,11 +1027,11 @@ def _replay_into(golden: Golden, bag_dir: Any, context: Any, executor: Any, orch
                 got.append((_topic, msg))
         helper.create_subscription(cls, topic.lstrip('/'), cb, qos)
 
-    sub(Float64MultiArray, '/apron/state')
-    sub(MultiDOFJointTrajectory, '/planner/reference')
+    sub(ApronState, '/apron/state')
+    sub(PlannerReference, '/planner/reference')
     sub(QuaternionStamped, '/control/attitude')
     sub(WrenchStamped, '/control/thrust')
-    sub(Vector3Stamped, '/altitude/observer')
+    sub(AltitudeState, '/altitude/state')
     sub(String, '/planner/mode', LATCHED_QOS)
     arrivals: list[tuple[float, float]] = []   # (wall s, stamp s) of played IMU messages
 

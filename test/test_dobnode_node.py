@@ -37,40 +37,39 @@ class Helper:
     """Publishes the node's inputs at 100 Hz and records its outputs (with receipt times)."""
 
     def __init__(self, context, executor, height_m=1.8, z_d_m=2.0, frame='relative'):
-        from deckland_common.contract import APRON_STATE_LAYOUT, ApronState, VerticalState
+        from deckland_common.contract import ApronState, VerticalState
         from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
         from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import Vector3Stamped, WrenchStamped
+        from geometry_msgs.msg import WrenchStamped
         from rclpy.node import Node
         from sensor_msgs.msg import Imu
-        from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
-        from trajectory_msgs.msg import MultiDOFJointTrajectory
+        from std_msgs.msg import Bool
 
-        self._Float64MultiArray, self._Dim, self._Imu = Float64MultiArray, MultiArrayDimension, Imu
-        self._Traj, self._Bool = MultiDOFJointTrajectory, Bool
-        self.layout = APRON_STATE_LAYOUT
+        from deckland_interfaces.msg import AltitudeState, PlannerReference
+        from deckland_interfaces.msg import ApronState as ApronStateMsg
+
+        self._Imu, self._Ref = Imu, PlannerReference
+        self._ApronMsg = ApronStateMsg
         self.node = Node('dobnode_test_helper', context=context)
         self.vertical = VerticalState(True, height_m, 0.0, height_m + 0.5, 0.0, 0.5, 0.0, 0.0,
                                       0, 0.0)
         self.base_state = ApronState.untracked(0.0)
         self.z_d_m, self.frame = z_d_m, frame
         self.publish_apron = True
-        self.corrupt = None  # callable(list[float]) -> list[float] | None
-        self.label = APRON_STATE_LAYOUT
+        self.corrupt = None  # callable(ApronState message) -> message | None
         self.lock = threading.Lock()
         self.apron_sent: list[tuple[float, float]] = []  # (t_s, monotonic)
         self.thrust: list[tuple[float, object]] = []
         self.observer: list[tuple[float, object]] = []
         self.diagnostics: list = []
         n = self.node
-        self.pub_apron = n.create_publisher(Float64MultiArray, 'apron/state', RELIABLE_QOS)
-        self.pub_ref = n.create_publisher(MultiDOFJointTrajectory, 'planner/reference',
-                                          RELIABLE_QOS)
+        self.pub_apron = n.create_publisher(ApronStateMsg, 'apron/state', RELIABLE_QOS)
+        self.pub_ref = n.create_publisher(PlannerReference, 'planner/reference', RELIABLE_QOS)
         self.pub_imu = n.create_publisher(Imu, 'vehicle/imu', RELIABLE_QOS)
         self.pub_enabled = n.create_publisher(Bool, 'control/enabled', LATCHED_QOS)
         n.create_subscription(WrenchStamped, 'control/thrust',
                               lambda m: self._record(self.thrust, m), RELIABLE_QOS)
-        n.create_subscription(Vector3Stamped, 'altitude/observer',
+        n.create_subscription(AltitudeState, 'altitude/state',
                               lambda m: self._record(self.observer, m), RELIABLE_QOS)
         n.create_subscription(DiagnosticArray, 'diagnostics', self.diagnostics.append,
                               RELIABLE_QOS)
@@ -82,34 +81,33 @@ class Helper:
         with self.lock:
             store.append((time.monotonic(), msg))
 
+    def apron_msg(self, t):
+        from deckland_common.messages import fill_apron_state
+        st = replace(self.base_state, t_s=t, vertical=self.vertical)
+        return fill_apron_state(self._ApronMsg(), st)
+
     def now_s(self):
         return self.node.get_clock().now().nanoseconds * 1e-9
 
     def _tick(self):
         if not self.running:
             return
-        from geometry_msgs.msg import Transform, Twist
-        from trajectory_msgs.msg import MultiDOFJointTrajectoryPoint
+        from deckland_common.contract import VERTICAL_FRAMES
         t = self.now_s()
         stamp = self.node.get_clock().now().to_msg()
         if self.publish_apron:
-            data = replace(self.base_state, t_s=t, vertical=self.vertical).to_array()
+            msg = self.apron_msg(t)
             if self.corrupt is not None:
-                data = self.corrupt(data)
-            if data is not None:
-                msg = self._Float64MultiArray(data=data)
-                msg.layout.dim = [self._Dim(label=self.label, size=len(data), stride=len(data))]
+                msg = self.corrupt(msg)
+            if msg is not None:
                 self.pub_apron.publish(msg)
                 with self.lock:
                     self.apron_sent.append((t, time.monotonic()))
-        ref = self._Traj()
+        ref = self._Ref()
         ref.header.stamp = stamp
-        ref.joint_names = [self.frame]
-        tf = Transform()
-        tf.translation.z = self.z_d_m
-        tf.rotation.w = 1.0
-        ref.points = [MultiDOFJointTrajectoryPoint(transforms=[tf], velocities=[Twist()],
-                                                   accelerations=[Twist()])]
+        ref.vertical_frame = (VERTICAL_FRAMES.index(self.frame) if self.frame in VERTICAL_FRAMES
+                              else 200)
+        ref.z_d_m = self.z_d_m
         self.pub_ref.publish(ref)
         imu = self._Imu()
         imu.header.stamp = stamp
@@ -156,16 +154,16 @@ def test_hover_below_reference_commands_law_16_above_hover_thrust(ros_context):
         assert wrench.header.frame_id == 'base_link'
         stamp = wrench.header.stamp.sec + wrench.header.stamp.nanosec * 1e-9
         assert min(abs(stamp - s) for s in sent) < 1e-6  # the t_s of an apron state used
-        assert obs.vector.z == pytest.approx(e, abs=1e-12)  # (7)
-        assert obs.vector.x == pytest.approx(sigma, rel=1e-9)  # (14)
-        d_hat = obs.vector.y
+        assert obs.e_z_m == pytest.approx(e, abs=1e-12)  # (7)
+        assert obs.sigma == pytest.approx(sigma, rel=1e-9)  # (14)
+        d_hat = obs.d_hat_mps2
         # (16) with ė = 0 → ζ = 0, z̈_d = 0: u = m / γ̄ (g − K σ − d̂)
         expected = M / gamma(1.85) * (G - 0.85 * sigma - d_hat)
         assert wrench.wrench.force.z == pytest.approx(expected, rel=1e-9)
         assert wrench.wrench.force.z > hover + 1.0
         assert math.isfinite(d_hat) and d_hat <= 0.0
     # the vehicle does not rise (the helper's state is frozen): d̂ grows more negative
-    assert pairs[-1][1].vector.y < pairs[1][1].vector.y < 0.0
+    assert pairs[-1][1].d_hat_mps2 < pairs[1][1].d_hat_mps2 < 0.0
     assert node.counts['steps'] >= 40 and sum(node.rejected.values()) == 0
     assert wait_for(lambda: helper.diagnostics, 2.5)
     status = helper.diagnostics[-1].status[0]
@@ -195,7 +193,7 @@ def test_stale_apron_state_stops_thrust_and_observer_restarts(ros_context):
     assert wait_for(lambda: len(helper.thrust) > n_before + 5)
     with helper.lock:
         first_back = helper.observer[n_before][1]
-    assert first_back.vector.y == 0.0
+    assert first_back.d_hat_mps2 == 0.0
     assert node.counts['resets'] >= 1
 
 
@@ -204,38 +202,35 @@ def test_nan_and_malformed_apron_state_rejected_never_published(ros_context):
     node = make_node(context, executor)
     helper = Helper(context, executor)
 
-    def nan_height(data):
-        data[20] = math.nan
-        return data
+    def nan_height(msg):
+        msg.vertical.height_m = math.nan
+        return msg
 
     helper.corrupt = nan_height
     helper.start(node)
     assert wait_for(lambda: node.rejected['non_finite'] >= 20)
     assert not helper.thrust  # nothing usable yet → nothing published
-    # alternate good / NaN / wrong size / inf closing speed / wrong layout label
+    # alternate good / NaN height / NaN position / inf closing speed
     count = {'n': 0}
 
-    def mixed(data):
+    def mixed(msg):
         count['n'] += 1
-        k = count['n'] % 5
+        k = count['n'] % 4
         if k == 1:
-            data[20] = math.nan
+            msg.vertical.height_m = math.nan
         elif k == 2:
-            data = data[:-1]
+            msg.rel_position_m = (math.nan, 0.0)
         elif k == 3:
-            data[21] = math.inf
-        elif k == 4:
-            data[27] = -math.inf  # surface_epoch: cannot become an int
-        return data
+            msg.vertical.closing_speed_mps = math.inf
+        return msg
 
     helper.corrupt = mixed
+    n_bad = node.rejected['non_finite']
     assert wait_for(lambda: len(helper.pairs()) >= 10)
-    helper.label = 'apron_state_v0'
-    assert wait_for(lambda: node.rejected['bad_layout'] >= 5)
     for wrench, obs in helper.pairs():
-        assert all(math.isfinite(v) for v in (wrench.wrench.force.z, obs.vector.x,
-                                              obs.vector.y, obs.vector.z))
-    assert node.rejected['bad_size'] > 0
+        assert all(math.isfinite(v) for v in (wrench.wrench.force.z, obs.sigma,
+                                              obs.d_hat_mps2, obs.e_z_m))
+    assert node.rejected['non_finite'] > n_bad + 10
     assert node.controller.rejected['nan'] == 0  # stopped at the adapter, never in the core
     assert wait_for(lambda: any(
         kv.key == 'rejected_non_finite' and int(kv.value) > 0
@@ -252,9 +247,9 @@ def test_pid_is_selectable_with_gain_overrides(ros_context):
     ki = node.controller.params.ki
     for wrench, obs in helper.pairs():
         # PID: u = m / γ̄ (g − K_p e − K_d ė − K_i ∫e), and its d̂ reports K_i ∫e
-        expected = M / gamma(1.85) * (G + 10.0 * 0.2 - obs.vector.y)
+        expected = M / gamma(1.85) * (G + 10.0 * 0.2 - obs.d_hat_mps2)
         assert wrench.wrench.force.z == pytest.approx(expected, rel=1e-9)
-        assert obs.vector.y <= 0.0
+        assert obs.d_hat_mps2 <= 0.0
     from dob_altitude.pid import PidParams
     assert ki == PidParams.profile('default').ki    # profile value kept where not overridden
 
@@ -272,8 +267,8 @@ def test_disabled_publishes_nothing_and_world_frame_reference(ros_context):
     helper.pub_enabled.publish(Bool(data=True))
     assert wait_for(lambda: len(helper.pairs()) >= 5)
     wrench, obs = helper.pairs()[0]
-    assert obs.vector.z == pytest.approx(2.3 - 2.5, abs=1e-9)  # e_z on the world altitude
-    assert obs.vector.y == 0.0  # first step after enabling: fresh observer
+    assert obs.e_z_m == pytest.approx(2.3 - 2.5, abs=1e-9)  # e_z on the world altitude
+    assert obs.d_hat_mps2 == 0.0  # first step after enabling: fresh observer
     e = -0.2
     sigma = 10.47 * e / math.sqrt(e * e + 1.0)
     # γ̄ still from the height above the deck (1.8 + 0.05), not the altitude
@@ -322,10 +317,7 @@ def test_every_apron_state_is_answered_in_its_callback(ros_context):
     sent = []
     for _ in range(5):
         t = max(helper.now_s(), helper.apron_sent[-1][0] + 1e-3)
-        data = replace(helper.base_state, t_s=t, vertical=helper.vertical).to_array()
-        msg = helper._Float64MultiArray(data=data)
-        msg.layout.dim = [helper._Dim(label=helper.label, size=len(data), stride=len(data))]
-        helper.pub_apron.publish(msg)
+        helper.pub_apron.publish(helper.apron_msg(t))
         sent.append(t)
         time.sleep(0.002)
 
@@ -338,6 +330,6 @@ def test_every_apron_state_is_answered_in_its_callback(ros_context):
     e = -0.2
     sigma = 10.47 * e / math.sqrt(e * e + 1.0)
     for wrench, obs in helper.pairs()[-5:]:
-        assert obs.vector.x == pytest.approx(sigma, rel=1e-9)   # (14), ė = 0
-        expected = M / gamma(1.85) * (G - 0.85 * sigma - obs.vector.y)  # (16)
+        assert obs.sigma == pytest.approx(sigma, rel=1e-9)   # (14), ė = 0
+        expected = M / gamma(1.85) * (G - 0.85 * sigma - obs.d_hat_mps2)  # (16)
         assert wrench.wrench.force.z == pytest.approx(expected, rel=1e-9)

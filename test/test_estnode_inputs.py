@@ -7,7 +7,6 @@ pixy/blocks layout of docs/interfaces.md, not from the implementation.
 
 import math
 import random
-import timeit
 
 from apron_estimator.inputs import (
     LocalPositionPairer,
@@ -186,10 +185,3 @@ def test_pairer_ignores_old_and_non_finite_stamps():
         LocalPositionPairer(-1.0)
 
 
-def test_conversion_cost():
-    """The IMU path runs at up to 400 Hz: a few µs per message."""
-    q = q_of(0.1, 0.05, 1.0)
-    n = 20000
-    us = timeit.timeit(lambda: world_accel_from_specific_force(q, (0.3, -0.2, 9.9), G),
-                       number=n) / n * 1e6
-    assert us < 20.0

@@ -56,7 +56,9 @@ class Helper:
         from nav_msgs.msg import Odometry
         from rclpy.node import Node
         from sensor_msgs.msg import ChannelFloat32, Imu, PointCloud, Range
-        from std_msgs.msg import Bool, Float64MultiArray
+        from std_msgs.msg import Bool
+
+        from deckland_interfaces.msg import ApronState as ApronStateMsg
 
         self.m = {'Imu': Imu, 'Odometry': Odometry, 'TwistStamped': TwistStamped,
                   'Range': Range, 'PointCloud': PointCloud, 'ChannelFloat32': ChannelFloat32}
@@ -72,7 +74,7 @@ class Helper:
         self.lock = threading.Lock()
         self.rx = {k: [] for k in ('state', 'odom', 'relative', 'relative_velocity', 'visible',
                                    'diagnostics')}
-        for key, cls, topic in (('state', Float64MultiArray, 'apron/state'),
+        for key, cls, topic in (('state', ApronStateMsg, 'apron/state'),
                                 ('odom', Odometry, 'apron/odom'),
                                 ('relative', PointStamped, 'apron/relative'),
                                 ('relative_velocity', Vector3Stamped,
@@ -210,9 +212,8 @@ def make(ros_context):
 
 
 def latest_state(helper):
-    from deckland_common.contract import ApronState
     msgs = helper.got('state')
-    return ApronState.from_array(msgs[-1][1].data) if msgs else None
+    return state_of(msgs[-1][1]) if msgs else None
 
 
 def wait_tracked(helper, timeout_s=4.0):
@@ -231,9 +232,10 @@ def test_beacon_at_the_image_centre_is_straight_below(make):
     assert st.rel_position_m == pytest.approx((0.0, 0.0), abs=0.01)
     assert st.vertical.height_m == pytest.approx(2.0, abs=0.05)
     assert st.apron_position_m == pytest.approx((3.0, -1.0), abs=0.01)
-    # layout label and stamp in the node clock domain
+    # the typed message: map frame, the source of the fix, stamp in the node clock domain
     msg = helper.got('state')[-1][1]
-    assert msg.layout.dim[0].label == 'apron_state_v1' and msg.layout.dim[0].size == 29
+    assert msg.header.frame_id == 'map' and msg.source == msg.SOURCE_BEACON
+    assert msg.camera_stamp.sec > 0 and not msg.ambiguous
     assert abs(st.t_s - helper.now_s()) < 0.5
     vis = helper.got('visible')
     assert vis and vis[-1][1].data is True
@@ -308,8 +310,10 @@ def test_visibility_loss_then_track_loss(make):
 
 
 def state_of(msg):
-    from deckland_common.contract import ApronState
-    return ApronState.from_array(msg.data)
+    from deckland_common.messages import apron_state_from_msg
+    st, _, detail = apron_state_from_msg(msg)
+    assert st is not None, detail
+    return st
 
 
 @pytest.mark.parametrize('stream, reason', [('imu', 'no_attitude'),
@@ -372,7 +376,7 @@ def test_nan_and_malformed_inputs_are_rejected_and_never_published(make):
     assert st.tracked
     assert st.rel_position_m == pytest.approx((0.0, -2.0 * 40.0 / FX), abs=0.01)
     for _, msg in helper.got('state'):
-        assert not any(math.isnan(v) for v in msg.data)
+        state_of(msg)                         # never NaN: decodes
     for _, od in helper.got('odom'):
         assert all(map(math.isfinite, (od.pose.pose.position.x, od.pose.pose.position.y,
                                        od.twist.twist.linear.x, od.twist.twist.linear.y)))

@@ -489,13 +489,15 @@ def apron_plans():
 
 def test_apron_estimator_survives_fuzzed_inputs(ros_context):
     from apron_estimator.node import ApronEstimatorNode
-    from deckland_common.contract import ApronState
+    from deckland_common.messages import apron_state_from_msg
     from deckland_common.ros_node import RELIABLE_QOS
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped, TwistStamped, Vector3Stamped
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import Imu, PointCloud, Range
-    from std_msgs.msg import Bool, Float64MultiArray
+    from std_msgs.msg import Bool
+
+    from deckland_interfaces.msg import ApronState as ApronStateMsg
 
     context, _ = ros_context
     ns = f'/fuzz_apron_{next(_NS)}'
@@ -505,12 +507,12 @@ def test_apron_estimator_survives_fuzzed_inputs(ros_context):
               inputs={'vehicle/imu': (Imu, q), 'vehicle/odom': (Odometry, q),
                       'vehicle/velocity': (TwistStamped, q), 'vehicle/range': (Range, q),
                       'pixy/blocks': (PointCloud, q)},
-              outputs={'apron/state': (Float64MultiArray, q), 'apron/odom': (Odometry, q),
+              outputs={'apron/state': (ApronStateMsg, q), 'apron/odom': (Odometry, q),
                        'apron/relative': (PointStamped, q),
                        'apron/relative_velocity': (Vector3Stamped, q),
                        'apron/visible': (Bool, q), 'diagnostics': (DiagnosticArray, q)},
-              inf_ok=lambda topic, path, v: topic == 'apron/state' and path in ('data[1]',
-                                                                                  'data[4]'))
+              inf_ok=lambda topic, path, v: topic == 'apron/state'
+              and path == 'time_since_seen_s')
     try:
         rig.wait_matched()
         plans, make = apron_plans()
@@ -550,8 +552,9 @@ def test_apron_estimator_survives_fuzzed_inputs(ros_context):
             msg = rig.last('apron/state')
             if msg is None:
                 return False
-            s = ApronState.from_array(msg.data)
-            return (s.tracked and s.vertical.valid and abs(s.vertical.height_m - 2.0) < 0.05
+            s, _, _ = apron_state_from_msg(msg)
+            return (s is not None and s.tracked and s.vertical.valid
+                    and abs(s.vertical.height_m - 2.0) < 0.05
                     and max(map(abs, s.rel_position_m)) < 0.02
                     and abs(s.apron_position_m[0] - 3.0) < 0.02
                     and abs(s.apron_position_m[1] + 1.0) < 0.02)
@@ -563,45 +566,53 @@ def test_apron_estimator_survives_fuzzed_inputs(ros_context):
         rig.close()
 
 
-# --------------------------------------------------------------------------- apron_state_v1
+# --------------------------------------------------------------------------- apron/state
 
-#: fields of apron_state_v1 each consumer reads (an inf there must be refused; NaN anywhere is)
-PLANNER_READS = frozenset({0, 5, 6, 15, 16, 17, 18, 20, 21, 24, 27, 28})
-DOB_READS = frozenset({0, 20, 21, 22, 23, 26, 27})
+#: the float fields of deckland_interfaces/ApronState the consumers decode, and those each
+#: consumer reads (an inf there must be refused; NaN in any decoded field is)
+APRON_FIELDS = ('time_since_seen_s', 'rel_position_m[0]', 'rel_position_m[1]',
+                'rel_velocity_mps[0]', 'rel_velocity_mps[1]', 'rel_position_cov_m2[0]',
+                'rel_position_cov_m2[1]', 'rel_position_cov_m2[3]', 'rel_position_body_m[0]',
+                'rel_position_body_m[1]', 'rel_velocity_body_mps[0]',
+                'rel_velocity_body_mps[1]', 'apron_position_m[0]', 'apron_position_m[1]',
+                'apron_velocity_mps[0]', 'apron_velocity_mps[1]', 'vertical.height_m',
+                'vertical.closing_speed_mps', 'vertical.vehicle_altitude_m',
+                'vertical.vehicle_vz_mps', 'vertical.surface_height_m',
+                'vertical.surface_vz_mps', 'vertical.surface_accel_mps2',
+                'vertical.last_rebase_m')
+PLANNER_READS = frozenset({'rel_position_m[0]', 'rel_position_m[1]', 'apron_position_m[0]',
+                           'apron_position_m[1]', 'apron_velocity_mps[0]',
+                           'apron_velocity_mps[1]', 'vertical.height_m',
+                           'vertical.closing_speed_mps', 'vertical.surface_height_m',
+                           'vertical.last_rebase_m'})
+DOB_READS = frozenset({'vertical.height_m', 'vertical.closing_speed_mps',
+                       'vertical.vehicle_altitude_m', 'vertical.vehicle_vz_mps',
+                       'vertical.surface_accel_mps2'})
 
 
 def apron_state_plan(reads, height_m=2.0, z_m=2.0):
-    from deckland_common.contract import APRON_STATE_LAYOUT, ApronState, VerticalState
-    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+    from deckland_common.contract import ApronState, VerticalState
+    from deckland_common.messages import fill_apron_state
+
+    from deckland_interfaces.msg import ApronState as ApronStateMsg
 
     def make(t):
         vert = VerticalState(True, height_m, 0.0, z_m, 0.0, z_m - height_m, 0.0, 0.0, 0, 0.0)
         st_ = ApronState(t, False, False, math.inf, (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
                          (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), vert)
-        m = Float64MultiArray()
-        m.layout.dim = [MultiArrayDimension(label=APRON_STATE_LAYOUT, size=29, stride=29)]
-        m.data = st_.to_array()
-        return m
+        return fill_apron_state(ApronStateMsg(), st_)
 
-    def rule(i):
-        if i == 0:
-            return lambda v: True   # t_s far from now: stale or in the future
-        return lambda v: math.isnan(v) or (math.isinf(v) and i in reads)
+    def rule(path):
+        return lambda v: math.isnan(v) or (math.isinf(v) and path in reads)
 
-    def relabel(m):
-        m.layout.dim = [MultiArrayDimension(label='apron_state_v0', size=29, stride=29)]
+    def rivals(m):   # extra content nobody decodes yet: ignored, not an error
+        from deckland_interfaces.msg import Rival
+        m.rivals = [Rival(offset_m=(0.6, 0.0), hits=3)] * 5
 
-    def resize(n):
-        def fn(m):
-            m.data = (list(m.data) + [0.0] * n)[:n]
-        return fn
-
-    return {'make': make, 'stamp_header': None, 'stamp': (),
-            'fields': [(f'data[{i}]', 'f64', rule(i)) for i in range(29)],
-            'struct': {'wrong_label': (relabel, True), 'empty': (resize(0), True),
-                       'short': (resize(28), True), 'long': (resize(30), True),
-                       'oversized': (resize(100_000), True),
-                       'no_layout': (lambda m: setattr(m.layout, 'dim', []), False)}}
+    return {'make': make, 'stamp_header': lambda m: m.header,
+            'stamp': ('old', 'future', 'zero', 'max'),
+            'fields': [(p, 'f64', rule(p)) for p in APRON_FIELDS],
+            'struct': {'rivals': (rivals, False)}}
 
 
 def quaternion_rule(component):
@@ -655,9 +666,11 @@ def test_landing_planner_survives_fuzzed_inputs(ros_context):
     from landing_planner.node import LandingPlannerNode
     from nav_msgs.msg import Odometry
     from rclpy.parameter import Parameter
-    from std_msgs.msg import Bool, Float64MultiArray, String
+    from std_msgs.msg import Bool, String
     from std_srvs.srv import Trigger
-    from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+    from deckland_interfaces.msg import ApronState as ApronStateMsg
+    from deckland_interfaces.msg import PlannerReference
 
     context, _ = ros_context
     ns = f'/fuzz_planner_{next(_NS)}'
@@ -666,10 +679,10 @@ def test_landing_planner_survives_fuzzed_inputs(ros_context):
         Parameter('xy_ki', value=0.0)])
     q = RELIABLE_QOS
     rig = Rig(context, node, ns,
-              inputs={'apron/state': (Float64MultiArray, q), 'vehicle/odom': (Odometry, q),
+              inputs={'apron/state': (ApronStateMsg, q), 'vehicle/odom': (Odometry, q),
                       'vehicle/velocity': (TwistStamped, q)},
               outputs={'control/attitude': (QuaternionStamped, q),
-                       'planner/reference': (MultiDOFJointTrajectory, q),
+                       'planner/reference': (PlannerReference, q),
                        'planner/setpoint': (PoseStamped, q), 'planner/mode': (String, LATCHED_QOS),
                        'control/enabled': (Bool, LATCHED_QOS),
                        'diagnostics': (DiagnosticArray, q)})
@@ -723,8 +736,8 @@ def test_landing_planner_survives_fuzzed_inputs(ros_context):
 
         stats = run_fuzz(rig, plans, valid_frame, lambda: total(node.rejected), n_examples=30)
         assert stats['must_reject'] >= 20, stats
-        for key in ('non_finite', 'bad_size', 'bad_layout', 'bad_frame', 'out_of_order',
-                    'future_stamp', 'bad_quaternion'):
+        for key in ('non_finite', 'bad_frame', 'out_of_order', 'future_stamp',
+                    'bad_quaternion'):
             assert node.rejected[key] > 0, (key, node.rejected)
         assert rig.out['control/attitude'], 'no command while fed valid frames'
 
@@ -742,8 +755,8 @@ def test_landing_planner_survives_fuzzed_inputs(ros_context):
                               1.0 - 2.0 * (qq.x * qq.x + qq.y * qq.y))
             pitch = math.asin(max(-1.0, min(1.0, 2.0 * (qq.w * qq.y - qq.z * qq.x))))
             assert abs(roll) < 1e-6 and 0.0 < pitch <= node.horizontal.params.max_tilt_rad + 1e-9
-        ref = rig.out['planner/reference'][-1].points[0]
-        assert ref.transforms[0].translation.x > 0.0 and ref.velocities[0].linear.x > 0.0
+        ref = rig.out['planner/reference'][-1]
+        assert ref.setpoint_m[0] > 0.0 and ref.velocity_ff_mps[0] > 0.0
         rig.check_clean()
     finally:
         rig.helper.destroy_client(start)
@@ -756,66 +769,48 @@ def test_dob_altitude_survives_fuzzed_inputs(ros_context):
     from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
     from diagnostic_msgs.msg import DiagnosticArray
     from dob_altitude.node import DobAltitudeNode
-    from geometry_msgs.msg import Transform, Twist, Vector3Stamped, WrenchStamped
+    from geometry_msgs.msg import WrenchStamped
     from sensor_msgs.msg import Imu
-    from std_msgs.msg import Bool, Float64MultiArray
-    from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
+    from std_msgs.msg import Bool
+
+    from deckland_interfaces.msg import AltitudeState, PlannerReference
+    from deckland_interfaces.msg import ApronState as ApronStateMsg
 
     context, _ = ros_context
     ns = f'/fuzz_dob_{next(_NS)}'
     node = DobAltitudeNode(context=context, namespace=ns)
     q = RELIABLE_QOS
     rig = Rig(context, node, ns,
-              inputs={'apron/state': (Float64MultiArray, q),
-                      'planner/reference': (MultiDOFJointTrajectory, q),
+              inputs={'apron/state': (ApronStateMsg, q),
+                      'planner/reference': (PlannerReference, q),
                       'vehicle/imu': (Imu, q), 'control/enabled': (Bool, LATCHED_QOS)},
               outputs={'control/thrust': (WrenchStamped, q),
-                       'altitude/observer': (Vector3Stamped, q),
+                       'altitude/state': (AltitudeState, q),
                        'diagnostics': (DiagnosticArray, q)})
     try:
         rig.wait_matched()
 
         def reference(t):
-            m = MultiDOFJointTrajectory()
+            m = PlannerReference()
             stamp(m.header, t)
             m.header.frame_id = 'map'
-            m.joint_names = ['relative']
-            tf = Transform()
-            tf.translation.z = 2.0
-            tf.rotation.w = 1.0
-            m.points = [MultiDOFJointTrajectoryPoint(transforms=[tf], velocities=[Twist()],
-                                                     accelerations=[Twist()])]
+            m.vertical_frame = PlannerReference.VERTICAL_RELATIVE
+            m.z_d_m = 2.0
+            m.thrust_enabled = True
             return m
 
-        def no_points(m):
-            m.points = []
-
-        def two_points(m):
-            m.points = [m.points[0], m.points[0]]
-
-        def no_transform(m):
-            m.points[0].transforms = []
-
-        def no_acceleration(m):
-            m.points[0].accelerations = []
-
-        def bad_joint(m):
-            m.joint_names = ['sideways']
+        def bad_frame(m):
+            m.vertical_frame = 7
 
         stamps = ('old', 'future', 'zero', 'max', 'backwards')
         plans = {
             'apron/state': apron_state_plan(DOB_READS, height_m=1.8),
             'planner/reference': {
                 'make': reference, 'stamp_header': lambda m: m.header, 'stamp': stamps,
-                'fields': [('points[0].transforms[0].translation.z', 'f64', _nonfinite),
-                           ('points[0].velocities[0].linear.z', 'f64', _nonfinite),
-                           ('points[0].accelerations[0].linear.z', 'f64', _nonfinite),
-                           ('points[0].transforms[0].translation.x', 'f64', _never)],
-                'struct': {'no_points': (no_points, True), 'two_points': (two_points, True),
-                           'no_transform': (no_transform, True),
-                           'no_acceleration': (no_acceleration, True),
-                           'bad_joint': (bad_joint, True),
-                           'no_joint': (lambda m: setattr(m, 'joint_names', []), False)}},
+                'fields': [('z_d_m', 'f64', _nonfinite), ('z_d_dot_mps', 'f64', _nonfinite),
+                           ('z_d_ddot_mps2', 'f64', _nonfinite),
+                           ('setpoint_m[0]', 'f64', _never), ('yaw_rad', 'f64', _never)],
+                'struct': {'bad_frame': (bad_frame, True)}},
             'vehicle/imu': imu_plan(),
         }
         # the apron state's t_s must also strictly increase (a repeat is refused)
@@ -831,8 +826,8 @@ def test_dob_altitude_survives_fuzzed_inputs(ros_context):
         rig.send('control/enabled', Bool(data=True))
         stats = run_fuzz(rig, plans, valid_frame, lambda: total(node.rejected), n_examples=30)
         assert stats['must_reject'] >= 20, stats
-        for key in ('non_finite', 'bad_size', 'bad_layout', 'out_of_order', 'future_stamp',
-                    'bad_frame', 'bad_quaternion'):
+        for key in ('non_finite', 'out_of_order', 'future_stamp', 'bad_frame',
+                    'bad_quaternion'):
             assert node.rejected[key] > 0, (key, node.rejected)
         assert rig.out['control/thrust'], 'no thrust while fed valid frames'
 
@@ -854,8 +849,8 @@ def test_dob_altitude_survives_fuzzed_inputs(ros_context):
             return min(max(u, cp.thrust_min_n), cp.thrust_max_n)
 
         def commands():
-            obs = {(o.header.stamp.sec, o.header.stamp.nanosec): o.vector
-                   for o in rig.out['altitude/observer']}
+            obs = {(o.header.stamp.sec, o.header.stamp.nanosec): o
+                   for o in rig.out['altitude/state']}
             return [(m.wrench.force.z, obs.get((m.header.stamp.sec, m.header.stamp.nanosec)))
                     for m in rig.out['control/thrust']]
 
@@ -867,10 +862,12 @@ def test_dob_altitude_survives_fuzzed_inputs(ros_context):
         for thrust, ob in commands()[-5:]:
             if ob is None:
                 continue
-            assert ob.z == pytest.approx(-0.2, abs=1e-6)                          # (7)
-            assert ob.x == pytest.approx(sigma_expected, rel=1e-9)
-            assert abs(ob.y) <= cp.d_hat_limit_mps2 + 1e-9
-            assert thrust == pytest.approx(law_16(ob.x, ob.y), rel=1e-9)
+            assert ob.e_z_m == pytest.approx(-0.2, abs=1e-6)                      # (7)
+            assert ob.sigma == pytest.approx(sigma_expected, rel=1e-9)
+            assert abs(ob.d_hat_mps2) <= cp.d_hat_limit_mps2 + 1e-9
+            assert thrust == pytest.approx(law_16(ob.sigma, ob.d_hat_mps2), rel=1e-9)
+            assert ob.z_m == pytest.approx(1.8) and ob.z_d_m == pytest.approx(2.0)
+            assert ob.thrust_n == thrust and ob.controller == ob.CONTROLLER_DOB
             checked += 1
         assert checked >= 3
 
@@ -885,7 +882,7 @@ def test_dob_altitude_survives_fuzzed_inputs(ros_context):
         assert rig.spin_until(lambda: (valid_frame(), rig.spin(0.01),
                                        len(rig.out['control/thrust']) > 10)[-1], 5.0)
         cmds = commands()
-        assert cmds[0][1] is not None and cmds[0][1].y == 0.0          # start-up: d_hat = 0
+        assert cmds[0][1] is not None and cmds[0][1].d_hat_mps2 == 0.0  # start-up: d_hat = 0
         assert cmds[0][0] == pytest.approx(law_16(sigma_expected, 0.0), rel=1e-9)
         thrusts = [t for t, _ in cmds]
         for a, b in itertools.pairwise(thrusts):

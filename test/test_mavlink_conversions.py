@@ -442,19 +442,3 @@ def test_params_validation():
         BridgeParams(input_timeout_s=math.nan)
 
 
-def test_core_step_cost():
-    import timeit
-    core = link_core()
-    t = [0.0]
-
-    def one():
-        t[0] += 0.01
-        core.on_heartbeat(t[0], 1, 1, 2, 12, 0, 0)
-        core.on_attitude_command(t[0], t[0], (1.0, 0.0, 0.0, 0.0))
-        core.on_thrust_command(t[0], t[0], 20.0)
-        core.step(t[0])
-
-    n = 2000
-    us = timeit.timeit(one, number=n) / n * 1e6
-    print(f'bridge core: {us:.1f} us per heartbeat+attitude+thrust+step')
-    assert us < 500.0

@@ -252,18 +252,3 @@ def test_garbage_and_bad_setpoints_are_counted_not_raised():
     assert c.emu.rejected['nan'] == 2
 
 
-def test_emulator_cost():
-    import timeit
-    c = Companion()
-    t = [0.0]
-
-    def one():
-        t[0] += 0.0025
-        c.emu.update(t[0])
-        c.state(t[0])
-        c.link.b.inbox.clear()
-
-    n = 2000
-    us = timeit.timeit(one, number=n) / n * 1e6
-    print(f'px4 emulator: {us:.1f} us per 400 Hz step (update + publish_state)')
-    assert us < 2000.0

@@ -64,20 +64,21 @@ class Helper:
 
     def __init__(self, context, executor, position=(0.0, 0.0, 2.0), yaw_rad=0.0,
                  height_m=2.0):
-        from deckland_common.contract import APRON_STATE_LAYOUT, ApronState, VerticalState
+        from deckland_common.contract import ApronState, VerticalState
         from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped, QuaternionStamped, TwistStamped
         from nav_msgs.msg import Odometry
         from rclpy.node import Node
-        from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension, String
+        from std_msgs.msg import Bool, String
         from std_srvs.srv import Trigger
-        from trajectory_msgs.msg import MultiDOFJointTrajectory
+
+        from deckland_interfaces.msg import ApronState as ApronStateMsg
+        from deckland_interfaces.msg import PlannerReference, PlannerStatus
 
         self._msgs = {'Odometry': Odometry, 'TwistStamped': TwistStamped, 'Bool': Bool,
-                      'Float64MultiArray': Float64MultiArray, 'Dim': MultiArrayDimension}
+                      'ApronState': ApronStateMsg}
         self._Trigger = Trigger
-        self.layout = APRON_STATE_LAYOUT
         self.VerticalState = VerticalState
         # a namespace of its own: latched messages of other tests' nodes never reach us
         self.ns = f'/plannode_{next(_NS)}'
@@ -89,20 +90,20 @@ class Helper:
         self.set_height(height_m)
         self.publish_vehicle = True
         self.publish_apron = True
-        self.corrupt = None     # callable(list[float]) -> list[float]
-        self.label = APRON_STATE_LAYOUT
+        self.corrupt = None     # callable(ApronState message) -> message
         self.lock = threading.Lock()
         self.apron_stamps: list[float] = []
-        self.out = {k: [] for k in ('attitude', 'reference', 'setpoint', 'mode', 'enabled',
-                                    'diagnostics')}
+        self.out = {k: [] for k in ('attitude', 'reference', 'setpoint', 'mode', 'status',
+                                    'enabled', 'diagnostics')}
         n = self.node
         self.pub_odom = n.create_publisher(Odometry, 'vehicle/odom', RELIABLE_QOS)
         self.pub_vel = n.create_publisher(TwistStamped, 'vehicle/velocity', RELIABLE_QOS)
         self.pub_landed = n.create_publisher(Bool, 'vehicle/landed', LATCHED_QOS)
-        self.pub_apron = n.create_publisher(Float64MultiArray, 'apron/state', RELIABLE_QOS)
+        self.pub_apron = n.create_publisher(ApronStateMsg, 'apron/state', RELIABLE_QOS)
         for key, cls, topic, qos in (
                 ('attitude', QuaternionStamped, 'control/attitude', RELIABLE_QOS),
-                ('reference', MultiDOFJointTrajectory, 'planner/reference', RELIABLE_QOS),
+                ('reference', PlannerReference, 'planner/reference', RELIABLE_QOS),
+                ('status', PlannerStatus, 'planner/status', LATCHED_QOS),
                 ('setpoint', PoseStamped, 'planner/setpoint', RELIABLE_QOS),
                 ('mode', String, 'planner/mode', LATCHED_QOS),
                 ('enabled', Bool, 'control/enabled', LATCHED_QOS),
@@ -163,14 +164,16 @@ class Helper:
             self.pub_vel.publish(tw)
         if self.publish_apron:
             t = stamp.sec + stamp.nanosec * 1e-9
-            data = replace(self.apron, t_s=t).to_array()
+            msg = self.apron_msg(t)
             if self.corrupt is not None:
-                data = self.corrupt(data)
-            msg = m['Float64MultiArray'](data=data)
-            msg.layout.dim = [m['Dim'](label=self.label, size=len(data), stride=len(data))]
+                msg = self.corrupt(msg)
             self.pub_apron.publish(msg)
             with self.lock:
                 self.apron_stamps.append(t)
+
+    def apron_msg(self, t):
+        from deckland_common.messages import fill_apron_state
+        return fill_apron_state(self._msgs['ApronState'](), replace(self.apron, t_s=t))
 
     def start(self):
         assert wait_for(lambda: self.node.count_subscribers('apron/state') >= 1
@@ -239,13 +242,13 @@ def test_start_landing_tilts_toward_the_area_by_the_pid_law(ros):
         assert pitch <= node.horizontal.params.max_tilt_rad + 1e-9
         matches = []
         for r in refs[(a.header.stamp.sec, a.header.stamp.nanosec)]:
-            pt = r.points[0]
-            assert r.joint_names == ['relative'] and r.header.frame_id == 'map'
-            tr, vel = pt.transforms[0].translation, pt.velocities[0].linear
-            assert tr.x > 0.0 and abs(tr.y) < 1e-9
-            assert vel.x > 0.0                          # feed-forward along the path
-            assert abs(tr.z - 2.0) < 0.05               # approach height 2 m
-            a_cmd = min(kp * tr.x + kd * vel.x, 3.0)    # max_accel_mps2 (< g tan 20°)
+            assert r.vertical_frame == r.VERTICAL_RELATIVE and r.header.frame_id == 'map'
+            sx, sy = r.setpoint_m
+            assert sx > 0.0 and abs(sy) < 1e-9
+            assert r.velocity_ff_mps[0] > 0.0           # feed-forward along the path
+            assert abs(r.z_d_m - 2.0) < 0.05            # approach height 2 m
+            assert not r.precise_xy and r.thrust_enabled
+            a_cmd = min(kp * sx + kd * r.velocity_ff_mps[0], 3.0)  # max_accel (< g tan 20°)
             matches.append(abs(G * math.tan(pitch) - a_cmd) < 1e-6)
         # several ticks may share an apron stamp: one of them is this command's reference
         assert any(matches)
@@ -277,7 +280,7 @@ def test_yawed_vehicle_rolls_right_toward_an_area_on_its_right(ros):
 def test_abort_holds_and_services_report_refusals(ros):
     context, executor = ros
     helper = Helper(context, executor)
-    make_node(context, executor, helper, landing_area_x_m=3.0)
+    node = make_node(context, executor, helper, landing_area_x_m=3.0)
     helper.start()
     res = helper.call('abort')
     assert not res.success and 'IDLE' in res.message
@@ -292,9 +295,16 @@ def test_abort_holds_and_services_report_refusals(ros):
     # HOLD keeps the vehicle where it was: setpoint ≈ current position, no tilt build-up
     helper.clear('reference')
     time.sleep(0.3)
-    pt = helper.get('reference')[-1].points[0]
-    assert math.hypot(pt.transforms[0].translation.x, pt.transforms[0].translation.y) < 0.2
+    assert math.hypot(*helper.get('reference')[-1].setpoint_m) < 0.2
     assert helper.modes() == ['IDLE', 'APPROACH', 'HOLD']
+    # planner/status: one latched message per mode, with the previous mode and the reason
+    from deckland_interfaces.msg import PlannerStatus
+    st = helper.get('status')
+    assert [(s.previous_mode, s.mode) for s in st] == [
+        (PlannerStatus.MODE_IDLE, PlannerStatus.MODE_IDLE),
+        (PlannerStatus.MODE_IDLE, PlannerStatus.MODE_APPROACH),
+        (PlannerStatus.MODE_APPROACH, PlannerStatus.MODE_HOLD)]
+    assert st[-1].reason == node.planner.reason and st[-1].reason
 
 
 def _all_finite_outputs(helper):
@@ -303,9 +313,8 @@ def _all_finite_outputs(helper):
         q = a.quaternion
         vals += [q.w, q.x, q.y, q.z, stamp_s(a.header)]
     for r in helper.get('reference'):
-        pt = r.points[0]
-        t, v, a = pt.transforms[0].translation, pt.velocities[0].linear, pt.accelerations[0]
-        vals += [t.x, t.y, t.z, v.x, v.y, v.z, a.linear.z, stamp_s(r.header)]
+        vals += [*r.setpoint_m, *r.velocity_ff_mps, r.z_d_m, r.z_d_dot_mps, r.z_d_ddot_mps2,
+                 stamp_s(r.header)]
     for s in helper.get('setpoint'):
         vals += [s.pose.position.x, s.pose.position.y, s.pose.position.z]
     return all(math.isfinite(x) for x in vals)
@@ -319,16 +328,18 @@ def test_bad_apron_states_are_rejected_and_never_published(ros):
     assert helper.call('start_landing').success
     time.sleep(0.3)
 
-    def nan_height(d):
-        d[20] = math.nan
-        return d
+    def nan_height(m):
+        m.vertical.height_m = math.nan
+        return m
     helper.corrupt = nan_height
     assert wait_for(lambda: node.rejected['non_finite'] > 20)
-    helper.corrupt = lambda d: d[:-1]
-    assert wait_for(lambda: node.rejected['bad_size'] > 5)
-    helper.corrupt = None
-    helper.label = 'apron_state_v0'
-    assert wait_for(lambda: node.rejected['bad_layout'] > 5)
+
+    def nan_velocity(m):
+        m.apron_velocity_mps = (0.0, math.nan)
+        return m
+    n_bad = node.rejected['non_finite']
+    helper.corrupt = nan_velocity
+    assert wait_for(lambda: node.rejected['non_finite'] > n_bad + 5)
     # the last good state went stale: the planner got the core's fallback (vertical invalid)
     # and entered its safe mode after invalid_timeout_s; commands kept flowing (vehicle fresh)
     assert wait_for(lambda: node.counts['apron_fallback'] > 10)
@@ -397,7 +408,8 @@ def test_full_sequence_to_landed_disables_control(ros):
     assert wait_for(lambda: 'DESCEND' in helper.modes(), 3.0), helper.modes()
     assert helper.modes()[:4] == ['IDLE', 'APPROACH', 'ALIGN', 'DESCEND']
     time.sleep(0.8)
-    assert helper.get('reference')[-1].points[0].velocities[0].linear.z < -0.05
+    assert helper.get('reference')[-1].z_d_dot_mps < -0.05
+    assert helper.get('reference')[-1].precise_xy
     helper.set_height(0.45, tracked_at=(0.05, 0.0))
     assert wait_for(lambda: helper.modes()[-1:] == ['FINAL'], 2.0), helper.modes()
     helper.pub_landed.publish(helper._msgs['Bool'](data=True))
@@ -483,13 +495,10 @@ def test_every_apron_state_is_answered_in_its_callback(ros):
         n_sent = len(helper.apron_stamps)
         time.sleep(0.05)
     fallback0 = node.counts['apron_fallback']
-    m, sent = helper._msgs, []
+    sent = []
     for _ in range(5):
         t = max(helper.now_s(), helper.apron_stamps[-1] + 1e-3)
-        data = replace(helper.apron, t_s=t).to_array()
-        msg = m['Float64MultiArray'](data=data)
-        msg.layout.dim = [m['Dim'](label=helper.label, size=len(data), stride=len(data))]
-        helper.pub_apron.publish(msg)
+        helper.pub_apron.publish(helper.apron_msg(t))
         sent.append(t)
         time.sleep(0.002)
 

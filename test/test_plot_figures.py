@@ -10,14 +10,17 @@ import struct
 from deckland.runner import TRACE_FIELDS, RunConfig, run_landing
 from deckland_common.contract import ApronState, VerticalState
 from deckland_common.frames import euler_to_quaternion, rot_body_to_world
-from geometry_msgs.msg import Vector3Stamped, WrenchStamped
+from deckland_common.messages import fill_apron_state
+from geometry_msgs.msg import WrenchStamped
 from nav_msgs.msg import Odometry
 import pytest
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Range
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import String
 
 from deckland import bag, cli, plot
+from deckland_interfaces.msg import AltitudeState
+from deckland_interfaces.msg import ApronState as ApronStateMsg
 
 # ----------------------------------------------------------------------- the synthetic landing
 # Time τ is seconds from the trigger; the bag starts 2 s before it (planner IDLE -> APPROACH).
@@ -86,8 +89,9 @@ def odom(tau, xyz, quat=(1.0, 0.0, 0.0, 0.0), twist=(0.0, 0.0, 0.0)):
 def apron_state(tau, tracked, visible, rel_body, height, surface, valid=True):
     v = VerticalState(valid, height, 0.0, height + surface, 0.0, surface, 0.0, 0.0, 0, 0.0)
     z = (0.0, 0.0)
-    s = ApronState(tau, tracked, visible, 0.0, z, z, z, rel_body[:2], rel_body[2:], z, z, v)
-    return Float64MultiArray(data=s.to_array())
+    s = ApronState(T_TRIGGER_S + tau, tracked, visible, 0.0, z, z, z, rel_body[:2],
+                   rel_body[2:], z, z, v)
+    return fill_apron_state(ApronStateMsg(), s, 'map')
 
 
 def make_bag(path, topics=None, outcome=True, extra=None):
@@ -115,12 +119,12 @@ def make_bag(path, topics=None, outcome=True, extra=None):
         rng = math.inf if k % 10 == 0 else z - deck_z(tau)       # a lost return every 0.2 s
         put(tau, '/vehicle/range', 'sensor_msgs/msg/Range', stamp(Range(range=rng), tau))
         tracked = tau >= 3.0
-        put(tau, '/apron/state', 'std_msgs/msg/Float64MultiArray',
+        put(tau, '/apron/state', 'deckland_interfaces/msg/ApronState',
             apron_state(tau, tracked, tracked and k % 5 != 0, expected_rel_body(tau),
                         z - deck_z(tau), deck_z(tau)))
-        ov = stamp(Vector3Stamped(), tau)
-        ov.vector.x, ov.vector.y = math.exp(-tau) if tau >= 0 else 1.0, 0.1
-        put(tau, '/altitude/observer', 'geometry_msgs/msg/Vector3Stamped', ov)
+        ov = stamp(AltitudeState(), tau)
+        ov.sigma, ov.d_hat_mps2 = math.exp(-tau) if tau >= 0 else 1.0, 0.1
+        put(tau, '/altitude/state', 'deckland_interfaces/msg/AltitudeState', ov)
         w = stamp(WrenchStamped(), tau)
         w.wrench.force.z = 15.0 + math.sin(tau)
         put(tau, '/control/thrust', 'geometry_msgs/msg/WrenchStamped', w)
@@ -255,14 +259,15 @@ def test_header_time_source(tmp_path):
 
 
 def test_bad_messages_are_counted_not_plotted(tmp_path):
-    bad_state = Float64MultiArray(data=[1.0, 2.0])                 # wrong layout length
+    bad_state = apron_state(1.0, True, True, (0.0, 0.0, 0.0, 0.0), 1.0, 0.0)
+    bad_state.vertical.height_m = math.nan                       # NaN in a decoded field
     nan_odom = odom(1.0, (math.nan, 0.0, 1.0))
     path = make_bag(tmp_path / 'bad', topics={'/planner/mode', '/vehicle/odom'}, extra=[
-        (1.01, '/apron/state', 'std_msgs/msg/Float64MultiArray', bad_state),
+        (1.01, '/apron/state', 'deckland_interfaces/msg/ApronState', bad_state),
         (1.01, '/sim/truth/vehicle', 'nav_msgs/msg/Odometry', nan_odom),
         (1.02, '/sim/outcome', 'std_msgs/msg/String', String(data='{not json'))])
     s = plot.series_from_bag(path)
-    assert s.rejected == {'bad_layout': 1, 'nan': 1, 'bad_outcome': 1}
+    assert s.rejected == {'nan': 2, 'bad_outcome': 1}
     assert s.get('visible') is None and s.get('x_true') is None
     assert all(math.isfinite(v) for v in s.get('x')[1])
 

@@ -12,14 +12,13 @@ accepted ``vehicle/imu`` message (thinned to 0.5 / rate_hz) and each camera fram
 
 from __future__ import annotations
 
-from array import array
 import functools
 import sys
 import threading
 import time
 
-from deckland_common.contract import APRON_STATE_LAYOUT, APRON_STATE_V1_LEN
 from deckland_common.loop_clock import PhaseLockedLoop, PhaseLockParams
+from deckland_common.messages import fill_apron_state
 from deckland_common.params import ParameterError
 from deckland_common.ros_node import (
     RELIABLE_QOS,
@@ -35,7 +34,7 @@ from geometry_msgs.msg import PointStamped, TwistStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, PointCloud, Range
-from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Bool
 
 from apron_estimator.estimator import ApronEstimator
 from apron_estimator.loop import UNKNOWN_VAR, EstimatorLoop
@@ -46,6 +45,7 @@ from apron_estimator.node_params import (
     SECTIONS,
     estimator_params_from,
 )
+from deckland_interfaces.msg import ApronState as ApronStateMsg
 
 __all__ = ['ESTIMATOR_DESCRIPTIONS', 'NODE_PARAMS', 'PARAMS', 'SECTIONS', 'ApronEstimatorNode',
            'estimator_params_from', 'main']
@@ -78,7 +78,7 @@ class ApronEstimatorNode(GuardedNode, Node):
         self._odom_when_untracked = p['odom_when_untracked']
         self._published_at_diag = 0
 
-        self.pub_state = self.create_publisher(Float64MultiArray, 'apron/state', RELIABLE_QOS)
+        self.pub_state = self.create_publisher(ApronStateMsg, 'apron/state', RELIABLE_QOS)
         self.pub_odom = self.create_publisher(Odometry, 'apron/odom', RELIABLE_QOS)
         self.pub_rel = self.create_publisher(PointStamped, 'apron/relative', RELIABLE_QOS)
         self.pub_rel_vel = self.create_publisher(Vector3Stamped, 'apron/relative_velocity',
@@ -119,10 +119,8 @@ class ApronEstimatorNode(GuardedNode, Node):
 
     def _build_messages(self, p: dict) -> None:
         """Output messages built once and refilled per publication (publish serialises)."""
-        st = Float64MultiArray()
-        st.layout.dim = [MultiArrayDimension(label=APRON_STATE_LAYOUT, size=APRON_STATE_V1_LEN,
-                                             stride=APRON_STATE_V1_LEN)]
-        self._msg_state = st
+        self._msg_state = ApronStateMsg()
+        self._map_frame = p['map_frame']
         self._msg_visible = Bool()
         od = Odometry()
         od.header.frame_id = p['map_frame']
@@ -213,8 +211,8 @@ class ApronEstimatorNode(GuardedNode, Node):
         """Publish a state the loop released and the outputs derived from it."""
         if st is None:
             return
-        msg = self._msg_state
-        msg.data = array('d', st.to_array())
+        msg = fill_apron_state(self._msg_state, st, self._map_frame)
+        msg.ambiguous = self.estimator.horizontal.ambiguous
         self.pub_state.publish(msg)
         # Lazy: the derived topics (viewers, figures, LANDING_TARGET) are built and published
         # only while something subscribes; the control chain reads apron/state alone.

@@ -46,6 +46,7 @@ import tempfile
 import threading
 import time
 import types
+from typing import Any
 
 from deckland_common.stats import percentile
 
@@ -327,6 +328,11 @@ def format_table(report: dict) -> str:
         tgt = _fmt_target(t['cpu_total_without_sim_percent']) if name == 'total_without_sim' \
             else ''
         lines.append(f'  {name:<32}{f(v):>9}{"":>9}   {tgt}')
+    fv = report.get('foxglove_view')
+    if fv:
+        lines.append(f"  {'foxglove_view (deckland viz)':<32}{f(fv['cpu_percent']):>9}{'':>9}   "
+                     f"{fv['client_channels']} channels, {fv['client_messages_per_s']} msg/s "
+                     'to the client')
     lines.append(f"window {report['duration_s']:.1f} s, {report['samples']} frames matched, "
                  f"{report['counts'].get('setpoints', 0)} setpoints, "
                  f"{report['stream_gaps']} stream gaps")
@@ -399,31 +405,95 @@ class StreamRecorder:
     """Subscriptions on the monitor's node recording the stamp chain (wall arrival times)."""
 
     def __init__(self, node):
-        from deckland_common.contract import APRON_STATE_V1_FIELDS, APRON_STATE_V1_LEN
         from deckland_common.ros_node import SENSOR_QOS, stamp_to_s
         from sensor_msgs.msg import PointCloud
-        from std_msgs.msg import Float64MultiArray
 
-        i_t = APRON_STATE_V1_FIELDS.index('t_s')
-        i_cam = APRON_STATE_V1_FIELDS.index('camera_stamp_s')
+        from deckland_interfaces.msg import ApronState
         self.frames: list[float] = []
         self.apron: list[tuple[float, float]] = []
-        self.bad = 0
 
         def on_blocks(msg):
             self.frames.append(stamp_to_s(msg.header.stamp))
 
         def on_apron(msg):
-            d = msg.data
-            if len(d) == APRON_STATE_V1_LEN:
-                self.apron.append((d[i_t], d[i_cam]))
-            else:
-                self.bad += 1
+            cam = msg.camera_stamp   # zero: no camera frame behind it yet
+            self.apron.append((stamp_to_s(msg.header.stamp),
+                               stamp_to_s(cam) if cam.sec or cam.nanosec else -math.inf))
 
         self._subs = [
             node.create_subscription(PointCloud, 'pixy/blocks', on_blocks, SENSOR_QOS),
-            node.create_subscription(Float64MultiArray, 'apron/state', on_apron, SENSOR_QOS),
+            node.create_subscription(ApronState, 'apron/state', on_apron, SENSOR_QOS),
         ]
+
+
+# --- the Foxglove view under test (--foxglove) --------------------------------------------------
+
+class ViewClient:
+    """A ``foxglove.sdk.v1`` WebSocket client subscribing to every channel the view advertises
+    (as the Foxglove app does with the layout open) and counting what it receives."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.channels: dict[int, str] = {}
+        self.messages = 0
+        self.bytes = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name='view-client')
+
+    def start(self) -> ViewClient:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        import websocket
+
+        ws = None
+        while ws is None and not self._stop.is_set():
+            try:
+                ws = websocket.create_connection(f'ws://127.0.0.1:{self.port}', timeout=1.0,
+                                                 subprotocols=['foxglove.sdk.v1'])
+            except OSError:
+                time.sleep(0.3)
+        if ws is None:
+            return
+        try:
+            while not self._stop.is_set():
+                try:
+                    op, data = ws.recv_data()
+                except websocket.WebSocketTimeoutException:
+                    continue
+                if op == websocket.ABNF.OPCODE_BINARY:
+                    self.messages += 1
+                    self.bytes += len(data)
+                elif op == websocket.ABNF.OPCODE_TEXT:
+                    msg = json.loads(data)
+                    if msg.get('op') == 'advertise':
+                        new = [c for c in msg['channels'] if c['id'] not in self.channels]
+                        self.channels.update({c['id']: c['topic'] for c in new})
+                        ws.send(json.dumps({'op': 'subscribe', 'subscriptions': [
+                            {'id': c['id'], 'channelId': c['id']} for c in new]}))
+        except (OSError, websocket.WebSocketException):
+            return
+        finally:
+            ws.close()
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def _start_view(port: int, scenario: str, log: Any) -> subprocess.Popen:
+    """``deckland viz --port PORT`` as its own process (its CPU measured apart)."""
+    return subprocess.Popen(
+        [sys.executable, '-c', 'import sys; from deckland.cli import main; '
+         'sys.exit(main(sys.argv[1:]))', 'viz', '--port', str(port), '--scenario', scenario],
+        stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
 # --- the command -----------------------------------------------------------------------------
@@ -450,9 +520,25 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
     subs = graph_substitutions(types.SimpleNamespace(
         scenario=args.scenario, seed=args.seed, hardware=False, mavlink=None, pixy_port=None,
         area=(0.0, 0.0)), udp)
-    tap_port, tap_fd = udp.bind()
-    subs['mavlink_url'] = f'udpout:127.0.0.1:{tap_port}'   # bridge -> tap -> simulator
+    px4 = _px4_for_bench(args)
+    # bridge -> tap -> simulator; with PX4 the tap sits on PX4's onboard link (it listens
+    # where PX4 sends, 14540 + i, and relays to PX4's 14580 + i)
+    try:
+        tap_port, tap_fd = (udp.bind() if px4 is None
+                            else udp.bind(px4.ports['onboard_remote']))
+    except OSError:
+        if px4 is not None:
+            px4.stop()
+        raise
+    sim_port = (_url_port(subs['sim_mavlink_url']) if px4 is None
+                else px4.ports['onboard_local'])
+    subs['mavlink_url'] = f'udpout:127.0.0.1:{tap_port}'
     graph = load_graph(args.graph or default_graph_path(), subs, hardware=False)
+    if px4 is not None:
+        px4.configure_graph(graph['nodes'])
+        for spec in graph['nodes']:
+            if spec.name == 'mavlink_bridge':
+                spec.parameters['connection'] = subs['mavlink_url']
     workdir = tempfile.mkdtemp(prefix='deckland_bench_')
     log_path = args.log or os.path.join(workdir, 'graph.log')
     tap_out = os.path.join(workdir, 'tap.txt')
@@ -466,31 +552,44 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
         orch = Orchestrator(nodes, out=log, stop_timeout_s=5.0, pass_fds=udp.fds())
         tap = subprocess.Popen(
             [sys.executable, '-c', 'import sys; from deckland.bench import tap_main; '
-             'sys.exit(tap_main(sys.argv[1:]))', str(tap_fd),
-             str(_url_port(subs['sim_mavlink_url'])), tap_out],
+             'sys.exit(tap_main(sys.argv[1:]))', str(tap_fd), str(sim_port), tap_out],
             stdin=subprocess.DEVNULL, start_new_session=True, pass_fds=(tap_fd,))
         monitor = None
+        view = client = None
         try:
             orch.start()
+            if args.foxglove:
+                port = free_tcp_port()
+                view = _start_view(port, args.scenario, log)
+                client = ViewClient(port).start()
             monitor = MissionMonitor(graph.get('wait_for_topics', []))
             recorder = StreamRecorder(monitor.node)
             t_start = time.monotonic()
             not_ready = orch.wait_ready(args.startup_timeout)
-            silent = [] if not_ready else monitor.wait_flowing(
-                args.startup_timeout - (time.monotonic() - t_start))
+            silent: list[str] = []
+            if not not_ready:
+                silent = _px4_up(px4, monitor, args, out) if px4 is not None else []
+                silent = silent or monitor.wait_flowing(
+                    args.startup_timeout - (time.monotonic() - t_start) if px4 is None
+                    else args.startup_timeout)
             if not_ready or silent:
-                out.write(f'start-up failed after {args.startup_timeout:.0f} s: not ready '
-                          f'{not_ready}, silent topics {silent}, device problems '
+                out.write(f'start-up failed after {time.monotonic() - t_start:.0f} s: not '
+                          f'ready {not_ready}, silent topics {silent}, device problems '
                           f'{orch.device_problems()} (log: {log_path})\n')
                 return 3, {}
             startup_s = time.monotonic() - t_start
             pids = {p.spec.name: p.proc.pid for p in orch.procs}
+            if view is not None:
+                time.sleep(2.0)     # the view discovers the topics (1 s period), the client
+                pids['foxglove_view'] = view.pid   # subscribes: measure the steady state
+            msgs0 = client.messages if client is not None else 0
             land_after = (max(0.0, args.duration - 15.0) if args.land_after is None
                           else args.land_after)
             load0 = os.getloadavg()
             t0_wall, t0 = time.time(), time.monotonic()
             ticks0 = {n: read_cpu_ticks(pid) for n, pid in pids.items()}
             tap0 = read_cpu_ticks(tap.pid)
+            px4_cpu0 = px4.cpu_s() if px4 is not None else 0.0
             triggered, outcome_at = False, None
             while time.monotonic() - t0 < args.duration:
                 orch.check()
@@ -508,13 +607,26 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
             t1_wall, wall = time.time(), time.monotonic() - t0
             ticks1 = {n: read_cpu_ticks(pid) for n, pid in pids.items()}
             tap1 = read_cpu_ticks(tap.pid)
+            px4_cpu = (round(100.0 * (px4.cpu_s() - px4_cpu0) / wall, 1)
+                       if px4 is not None else None)
+            msgs1 = client.messages if client is not None else 0
             crashed = list(orch.crashed)
             outcome = monitor.outcome
         finally:
+            if client is not None:
+                client.stop()
+            if view is not None:
+                view.send_signal(signal.SIGINT)
+                try:
+                    view.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    view.kill()
             if monitor is not None:
                 monitor.close()
             orch.stop()
             orch.close()
+            if px4 is not None:
+                px4.stop()
             tap.send_signal(signal.SIGTERM)
             try:
                 tap.wait(timeout=3.0)
@@ -525,7 +637,11 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
     chain = match_chain(setpoints, recorder.apron, recorder.frames, window)
     jitter, gaps = loop_jitter([t for t, _ in setpoints if t0_wall <= t <= t1_wall])
     cpu = {n: cpu_percent(ticks0[n], ticks1[n], wall, clk_tck) for n in pids}
+    view_cpu = cpu.pop('foxglove_view', None)
     extra = {
+        'foxglove_view': None if not args.foxglove else {
+            'cpu_percent': view_cpu, 'client_channels': len(client.channels) if client else 0,
+            'client_messages_per_s': round((msgs1 - msgs0) / wall, 1) if wall > 0 else None},
         'scenario': args.scenario, 'seed': args.seed,
         'composed': bool(getattr(args, 'composed', False)),
         'instrumentation_cpu_percent': {'mavlink_tap': cpu_percent(tap0, tap1, wall, clk_tck)},
@@ -533,6 +649,8 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
             k: outcome.get(k) for k in ('success', 'reason', 'time_to_land_s')},
         'crashed_nodes': [{'node': n, 'status': c} for n, c in crashed],
         'startup_s': round(startup_s, 3),
+        'autopilot': getattr(args, 'autopilot', 'emulator'),
+        'autopilot_cpu_percent': px4_cpu,
         'log': log_path,
         'machine': {'cpus': os.cpu_count(), 'loadavg_1min_before': load0[0],
                     'loadavg_1min_after': os.getloadavg()[0]},
@@ -548,12 +666,45 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
     return status, report
 
 
+def _px4_for_bench(args: argparse.Namespace):
+    """``--autopilot NAME``: the firmware started for the bench (deckland.sitl registry)."""
+    from deckland.sitl import sitl_autopilot
+    backend = sitl_autopilot(getattr(args, 'autopilot', 'emulator'))
+    if backend is None:
+        return None
+    from deck_simulator.scenario import load_scenario
+
+    px4 = backend.load('mission')(load_scenario(args.scenario))
+    px4.start()
+    return px4
+
+
+def _px4_up(px4, monitor, args: argparse.Namespace, out) -> list[str]:
+    """PX4 up, the ground topics, the operator's take-off: the graph then flies as with the
+    emulator (the window starts in PX4's loiter). Returns what did not come up."""
+    def log(text: str) -> None:
+        out.write(f'{text}\n')
+
+    ok, msg = px4.wait_up(args.startup_timeout)
+    silent = [] if ok else [msg]
+    silent = silent or monitor.wait_flowing(args.startup_timeout, skip=px4.GROUND_SILENT)
+    if not silent:
+        ok, msg = px4.operator_take_off(monitor, log)
+        silent = [] if ok else [msg]
+    return silent
+
+
 def _cmd_latency(args: argparse.Namespace) -> int:
     if not (args.duration > 0.0 and math.isfinite(args.duration)):
         print('deckland bench latency: --duration must be a positive number of seconds',
               file=sys.stderr)
         return 2
-    status, report = run_latency_bench(args)
+    from deckland.sitl import SitlNotFoundError, SitlStartError
+    try:
+        status, report = run_latency_bench(args)
+    except (SitlNotFoundError, SitlStartError) as exc:
+        print(f'deckland bench latency: {exc}', file=sys.stderr)
+        return 2
     if not report:
         return status
     text = json.dumps(report, indent=2, allow_nan=False) + '\n'
@@ -593,6 +744,13 @@ def register(sub) -> None:
     lat.add_argument('--startup-timeout', type=float, default=40.0)
     lat.add_argument('--composed', action='store_true',
                      help='the stack nodes in one process (as deckland up --composed)')
+    from deckland.sitl import SITL_AUTOPILOTS
+    lat.add_argument('--autopilot', choices=('emulator', *SITL_AUTOPILOTS), default='emulator',
+                     help='a firmware (e.g. px4-sitl) flies the simulated vehicle (it takes '
+                     'off first; its CPU in autopilot_cpu_percent)')
+    lat.add_argument('--foxglove', action='store_true',
+                     help='also run `deckland viz` with a client subscribed to every channel; '
+                     "its CPU is reported apart (foxglove_view), the nodes' as usual")
     lat.set_defaults(func=_cmd_latency)
 
 

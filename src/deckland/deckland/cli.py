@@ -18,6 +18,7 @@ TOOL_MODULES = (
     'deckland.bag',
     'deckland.plot',
     'deckland.bench',
+    'deckland.viz',
     'deckland.tune',
     'deckland.accel',
 )

@@ -56,9 +56,9 @@ MODE_NAMES = ('IDLE', 'TAKEOFF', 'APPROACH', 'ALIGN', 'DESCEND', 'FINAL', 'SEARC
 TOPICS: dict[str, str] = {
     'vehicle/odom': 'nav_msgs/msg/Odometry',
     'vehicle/range': 'sensor_msgs/msg/Range',
-    'apron/state': 'std_msgs/msg/Float64MultiArray',
+    'apron/state': 'deckland_interfaces/msg/ApronState',
     'apron/odom': 'nav_msgs/msg/Odometry',
-    'altitude/observer': 'geometry_msgs/msg/Vector3Stamped',
+    'altitude/state': 'deckland_interfaces/msg/AltitudeState',
     'control/thrust': 'geometry_msgs/msg/WrenchStamped',
     'planner/mode': 'std_msgs/msg/String',
     'sim/truth/vehicle': 'nav_msgs/msg/Odometry',
@@ -93,7 +93,7 @@ SERIES: dict[str, str] = {
     'rel_y_body_true': 'truth of rel_y_body [m]',
     'rel_vx_body_true': 'truth of rel_vx_body [m/s]',
     'rel_vy_body_true': 'truth of rel_vy_body [m/s]',
-    'sigma': 'sliding variable σ (14) (altitude/observer x; CSV sigma)',
+    'sigma': 'sliding variable σ (14) (altitude/state; CSV sigma)',
     'd_hat': 'disturbance estimate d̂ (18) [m/s²]',
     'thrust': 'collective thrust u_z (16) [N] (control/thrust force.z; CSV thrust)',
     'z_d': 'reference height above the surface [m] (CSV z_d)',
@@ -371,10 +371,10 @@ def _add_message(col: _Collector, rel: str, t: float, msg: Any,
         col.add('apron_x', t, float(p.x))
         col.add('apron_y', t, float(p.y))
     elif rel == 'apron/state':
-        _add_apron_state(col, t, msg.data)
-    elif rel == 'altitude/observer':
-        col.add('sigma', t, float(msg.vector.x))
-        col.add('d_hat', t, float(msg.vector.y))
+        _add_apron_state(col, t, msg)
+    elif rel == 'altitude/state':
+        col.add('sigma', t, float(msg.sigma))
+        col.add('d_hat', t, float(msg.d_hat_mps2))
     elif rel == 'control/thrust':
         col.add('thrust', t, float(msg.wrench.force.z))
     elif rel == 'sim/truth/vehicle':
@@ -406,13 +406,12 @@ def _add_message(col: _Collector, rel: str, t: float, msg: Any,
             lst.append(x)
 
 
-def _add_apron_state(col: _Collector, t: float, data: Any) -> None:
-    from deckland_common.contract import ApronState
+def _add_apron_state(col: _Collector, t: float, msg: Any) -> None:
+    from deckland_common.messages import apron_state_from_msg
 
-    try:
-        s = ApronState.from_array(list(data))
-    except (ValueError, TypeError):
-        col.reject('bad_layout')
+    s, reason, _ = apron_state_from_msg(msg)
+    if s is None:
+        col.reject('nan' if reason == 'non_finite' else reason)
         return
     col.add('visible', t, 1.0 if s.visible else 0.0)
     col.add('tracked', t, 1.0 if s.tracked else 0.0)

@@ -12,6 +12,8 @@ receives them (so the bag covers the mission from the trigger on), request OFFBO
 so), ``node_kill`` faults of the scenario are injected (SIGKILL at ``start_s`` after the
 trigger), until the outcome, the timeout or SIGINT/SIGTERM. Then every child is stopped
 (within 5 s), the bag is finished, ``report.json`` is written and a summary is printed.
+``--autopilot px4-sitl``: PX4 SITL flies the simulated vehicle (:mod:`deckland.sitl.mission`:
+started first, an operator's take-off before OFFBOARD, disarm awaited, killed at the end).
 Exit codes: see :data:`EXIT_CODES` and ``src/deckland/README-up.md``.
 """
 
@@ -70,10 +72,10 @@ class UdpReservations:
     def __init__(self) -> None:
         self.sockets: list[socket.socket] = []
 
-    def bind(self) -> tuple[int, int]:
-        """A new socket on 127.0.0.1 (the OS picks the port): ``(port, fd)``."""
+    def bind(self, port: int = 0) -> tuple[int, int]:
+        """A new socket on 127.0.0.1 (``port`` 0: the OS picks one): ``(port, fd)``."""
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(('127.0.0.1', 0))
+        sock.bind(('127.0.0.1', port))
         self.sockets.append(sock)
         return sock.getsockname()[1], sock.fileno()
 
@@ -175,19 +177,27 @@ class MissionMonitor:
         if not self.vehicle_modes or self.vehicle_modes[-1][1] != msg.data:
             self.vehicle_modes.append((time.monotonic(), msg.data))
 
-    def wait_flowing(self, timeout_s: float, abort=None) -> list[str]:
-        """Wait until every watched topic has delivered messages; return the silent ones.
+    def wait_flowing(self, timeout_s: float, abort=None, skip=()) -> list[str]:
+        """Wait until every watched topic (but those in ``skip``) has delivered messages;
+        return the silent ones.
 
         ``abort()`` (optional) is polled every 0.1 s; when it returns true the wait ends early.
         """
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+        while True:
             self._subscribe_new()
-            silent = [t for t, n in self.counts.items() if n < 3]
-            if not silent or (abort is not None and abort()):
+            silent = [t for t, n in self.counts.items() if n < 3 and t not in skip]
+            if not silent or (abort is not None and abort()) or time.monotonic() >= deadline:
                 return silent
             time.sleep(0.1)
-        return [t for t, n in self.counts.items() if n < 3]
+
+    def stop_counting(self) -> None:
+        """Drop the counting subscriptions (once the topics flow they only cost CPU: ~400
+        messages/s through this process)."""
+        for sub in self._subs.values():
+            self.node.destroy_subscription(sub)
+        self._subs = {}
+        self.counts = {}
 
     def trigger(self, service: str, timeout_s: float = 5.0) -> tuple[bool, str]:
         from std_srvs.srv import Trigger
@@ -320,6 +330,17 @@ def summary_lines(report: dict[str, Any], code: int, record: str | None) -> list
         f'horizontal error  {_fmt(report.get("horizontal_error_m"), "m", 3)}',
         f'time to land      {_fmt(report.get("time_to_land_s"), "s", 1)}',
     ]
+    if report.get('outcome'):     # the landing record (deck_simulator.outcome, campaigns')
+        lines.insert(2, f'class             {report["outcome"]}'
+                     + (' (settled)' if report.get('settled') else ''))
+    if report.get('contact_kind') not in (None, 'none'):
+        tilt = report.get('tilt_rad')
+        tilt_deg = math.degrees(tilt) if isinstance(tilt, int | float) else None
+        lines += [f'lateral speed     {_fmt(report.get("lateral_speed_mps"), "m/s")}',
+                  f'relative tilt     {_fmt(tilt_deg, "deg", 1)}',
+                  f'impacts, bounces  {report.get("impacts", 0)}, {report.get("bounces", 0)} '
+                  f'(fastest {_fmt(report.get("max_impact_speed_mps"), "m/s")}, highest hop '
+                  f'{_fmt(report.get("max_bounce_height_m"), "m", 3)})']
     if report.get('autopilot_modes'):
         lines.append('autopilot modes   ' + ' -> '.join(m['mode'] for m in
                                                         report['autopilot_modes']))
@@ -356,6 +377,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
     hardware = bool(args.hardware)
     if hardware and not (args.mavlink and args.pixy_port):
         return fail('--hardware needs --mavlink URL and --pixy-port DEV')
+    from deckland.sitl import sitl_autopilot
+    backend = sitl_autopilot(getattr(args, 'autopilot', 'emulator'))
+    if backend is not None and (hardware or args.mavlink):
+        return fail(f'--autopilot {backend.name} is a simulation (no --hardware, no --mavlink)')
     if not hardware and any(getattr(args, k, None) is not None
                             for k in ('mass_kg', 'hover_thrust_norm', 'thrust_expo')):
         return fail('--mass-kg, --hover-thrust-norm and --thrust-expo are for --hardware '
@@ -372,18 +397,25 @@ def _cmd_up(args: argparse.Namespace) -> int:
         udp.close()
         return fail(str(exc))
     try:
-        return _run_up(args, hardware, scenario, graph, record, udp)
+        return _run_up(args, hardware, scenario, graph, record, udp, backend)
     finally:
         udp.close()
 
 
 def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str, Any],
-            record: pathlib.Path | None, udp: UdpReservations) -> int:
+            record: pathlib.Path | None, udp: UdpReservations, backend: Any) -> int:
     def fail(msg: str) -> int:
         print(f'deckland up: {msg}', file=sys.stderr)
         return 2
 
     nodes = graph['nodes']
+    px4 = None
+    if backend is not None:   # a firmware in the loop (deckland.sitl.SITL_AUTOPILOTS)
+        from deckland.sitl import SitlNotFoundError
+        try:
+            px4 = backend.load('mission')(scenario, keep_ulog=args.keep_ulog)
+        except (SitlNotFoundError, ValueError) as exc:
+            return fail(str(exc))
     names = {n.name for n in nodes}
     kills = node_kill_faults(scenario)
     for f in kills:
@@ -407,14 +439,24 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     recorder = None
     monitor = None
+    view = None
     result_code = 1
     report: dict[str, Any] = {}
     t_trigger: float | None = None
+    t_outcome: float | None = None
     injected: list[dict[str, Any]] = []
     try:
+        if px4 is not None:
+            problem = _start_px4(px4, nodes, orch)
+            if problem:
+                report = {'success': False, 'reason': f'start-up failed: {problem}'}
+                result_code = 3
+                raise _EndRunError
         orch.start()
         expect = {} if scenario is None else {'scenario': scenario.name, 'seed': args.seed}
         monitor = MissionMonitor(graph.get('wait_for_topics', []), expect=expect)
+        if args.foxglove is not None:
+            view = _start_view(args, scenario, monitor, orch)
 
         def startup_abort() -> bool:
             orch.check()
@@ -423,8 +465,23 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
 
         t_start = time.monotonic()
         not_ready = orch.wait_ready(args.startup_timeout, abort=startup_abort)
-        silent = [] if not_ready else monitor.wait_flowing(
-            args.startup_timeout - (time.monotonic() - t_start), abort=startup_abort)
+        silent: list[str] = []
+        if not not_ready and not stop_requested.is_set():
+            t_flow = t_start
+            if px4 is not None:
+                ok, msg = px4.wait_up(args.startup_timeout, abort=startup_abort)
+                if not ok:
+                    report = {'success': False, 'reason': f'start-up failed: {msg}'}
+                    result_code = 3
+                    orch.log(report['reason'])
+                    raise _EndRunError
+                orch.log(f'{backend.name} up after {px4.times["up_s"]:.1f} s')
+                t_flow = time.monotonic()   # PX4's boot is not the topics' time
+            # on the ground the planner disables the thrust: the command topics flow once in
+            # the air (PX4's take-off, below)
+            silent = monitor.wait_flowing(
+                args.startup_timeout - (time.monotonic() - t_flow), abort=startup_abort,
+                skip=() if px4 is None else px4.GROUND_SILENT)
         if stop_requested.is_set():
             raise _EndRunError
         if not_ready or silent or orch.crashed:
@@ -439,13 +496,34 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
                       'not_ready': not_ready}
             result_code = 3
             raise _EndRunError
+        wait_topics = graph.get('wait_for_topics', [])
+        if px4 is not None:   # the bag covers PX4's take-off
+            if record is not None:
+                recorder = _start_recorder(record, monitor, [
+                    t for t in wait_topics if t not in px4.GROUND_SILENT], orch)
+            ok, msg = px4.operator_take_off(monitor, orch.log, stop_requested.is_set)
+            if ok:
+                silent = monitor.wait_flowing(10.0, abort=startup_abort)
+                ok, msg = not silent, f'silent topics in the air {silent}'
+            if not ok:
+                report = {'success': False, 'reason': f'start-up failed: {msg}'}
+                result_code = 3
+                orch.log(report['reason'])
+                raise _EndRunError
         orch.log(f'all nodes ready, all topics flowing after {time.monotonic() - t_start:.2f} s')
-        if record is not None:
-            recorder = _start_recorder(record, monitor, graph.get('wait_for_topics', []), orch)
+        monitor.stop_counting()
+        if record is not None and recorder is None:
+            recorder = _start_recorder(record, monitor, wait_topics, orch)
         if stop_requested.is_set():
             raise _EndRunError
         ok, msg = monitor.trigger('bridge/offboard')
         orch.log(f'offboard: {ok} {msg}')
+        if px4 is not None and not px4.wait_mode('OFFBOARD', 5.0, stop_requested.is_set):
+            report = {'success': False, 'reason': f'{backend.name} did not enter OFFBOARD '
+                      f'({msg}; mode {px4.mode})'}
+            result_code = 4
+            orch.log(report['reason'])
+            raise _EndRunError
         ok, msg = monitor.trigger('planner/start_landing')
         t_trigger = time.monotonic()
         orch.log(f'start_landing: {ok} {msg}')
@@ -478,6 +556,11 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
         if stop_requested.is_set():
             raise _EndRunError
         if monitor.outcome is not None:
+            t_outcome = time.monotonic()
+            if px4 is not None:   # PX4's land detector disarms it (or its failsafe lands)
+                disarmed = px4.wait_disarmed(PX4_DISARM_WAIT_S, stop_requested.is_set)
+                orch.log(f'PX4 {"disarmed" if disarmed else "still armed"} '
+                         f'{time.monotonic() - t_outcome:.1f} s after the touchdown')
             report = dict(monitor.outcome)
             result_code = 0 if report.get('success') else 1
             orch.log(f'outcome: {json.dumps(report)}')
@@ -502,9 +585,18 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
         orch.check()
         orch.close()
         orch.log(f'stopped all nodes in {took:.2f} s')
+        px4_report = None
+        if px4 is not None:
+            px4_report = px4.report(t_trigger)
+            px4.stop()
+            orch.log('PX4 stopped, its working directory removed'
+                     + (f'; ULog kept in {args.keep_ulog}' if args.keep_ulog else ''))
         if recorder is not None:
             with contextlib.suppress(Exception):
                 recorder.stop()
+        if view is not None:
+            with contextlib.suppress(Exception):
+                view.stop()
         if monitor is not None:
             modes = [{'t_s': round(t - (t_trigger or t), 3), 'mode': m}
                      for t, m in monitor.vehicle_modes
@@ -512,6 +604,12 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
             monitor.close()
         else:
             modes = []
+        if px4_report is not None:
+            # PX4's own modes (the operator's view: the bridge may be the node killed) up to
+            # the touchdown; after it the land detector or the offboard loss may switch
+            modes = [{'t_s': m['t_s'], 'mode': m['mode']} for m in px4_report['modes']
+                     if t_outcome is None or t_trigger is None
+                     or m['t_s'] <= t_outcome - t_trigger]
         for s, h in old.items():
             signal.signal(s, h)
         report = _finish_report(report, args, hardware, orch, injected, modes,
@@ -519,10 +617,16 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
         if record is not None and recorder is None:
             report['bag'] = {'path': str(record), 'messages': 0,
                              'not_started': 'the run ended before recording began'}
+        if px4_report is not None:
+            report['autopilot'] = backend.name
+            report[backend.report_key] = px4_report
         if record is not None:
             with contextlib.suppress(OSError):
                 record.mkdir(parents=True, exist_ok=True)
                 (record / 'report.json').write_text(json.dumps(report, indent=2) + '\n')
+        if getattr(args, 'report', None):
+            with contextlib.suppress(OSError):
+                pathlib.Path(args.report).write_text(json.dumps(report, indent=2) + '\n')
         print('\n'.join(summary_lines(report, result_code, str(record) if record else None)),
               flush=True)
     return result_code
@@ -530,6 +634,37 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
 
 class _EndRunError(Exception):
     """Leave the mission early (start-up failure, refused trigger, SIGINT/SIGTERM)."""
+
+
+#: after the touchdown, how long PX4 gets to disarm (land detector: COM_DISARM_LAND 2 s)
+PX4_DISARM_WAIT_S = 20.0
+
+
+def _start_px4(px4, nodes, orch: Orchestrator) -> str:
+    """PX4 SITL in a fresh directory, the graph pointed at its instance's ports; '' or why
+    PX4 could not be started."""
+    from deckland.sitl import SitlStartError
+    try:
+        px4.start()
+    except (SitlStartError, OSError) as exc:
+        orch.log(f'PX4 did not start: {exc}')
+        return f'PX4 did not start: {exc}'
+    # composed: the simulator and the bridge are components (their commands are built at
+    # start, so their parameters can still change here)
+    px4.configure_graph([c for n in nodes for c in (getattr(n, 'components', None) or [n])])
+    orch.log(px4.describe())
+    return ''
+
+
+def _start_view(args: Any, scenario: Any, monitor: MissionMonitor, orch: Orchestrator) -> Any:
+    """The live Foxglove view (``--foxglove``) on the monitor's context."""
+    from deckland.viz import LiveView
+
+    pad = None if scenario is None else tuple(scenario.apron.size_m)
+    view = LiveView(host=args.foxglove_host, port=args.foxglove, pad_size_m=pad,
+                    context=monitor.context).start()
+    orch.log(f'Foxglove: open connection ws://{args.foxglove_host}:{view.port}')
+    return view
 
 
 def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: list[str],
@@ -611,6 +746,20 @@ def register(sub) -> None:
                    help='run the stack nodes in one process on one executor (the simulator '
                    'stays apart); default: one process per node')
     p.add_argument('--record', help='record a bag (and report.json) into this directory')
+    p.add_argument('--foxglove', type=int, nargs='?', const=8765, default=None, metavar='PORT',
+                   help='serve a live Foxglove view on this WebSocket port (default 8765)')
+    p.add_argument('--foxglove-host', default='127.0.0.1',
+                   help='bind address of the Foxglove view (default 127.0.0.1, loopback)')
     p.add_argument('--timeout', type=float, default=120.0, help='mission timeout [s]')
     p.add_argument('--startup-timeout', type=float, default=40.0)
+    from deckland.sitl import SITL_AUTOPILOTS
+    p.add_argument('--autopilot', choices=('emulator', *SITL_AUTOPILOTS), default='emulator',
+                   help='what flies the simulated vehicle: the emulated PX4 (default) or a '
+                   'firmware in the loop: ' + '; '.join(
+                       f'{a.name}: {a.help}' for a in SITL_AUTOPILOTS.values()))
+    p.add_argument('--report', metavar='FILE',
+                   help='write report.json here too (no bag needed; deckland campaign '
+                   '--autopilot px4-sitl reads it)')
+    p.add_argument('--keep-ulog', metavar='DIR',
+                   help="px4-sitl: keep PX4's ULog and its log in DIR (default: not logged)")
     p.set_defaults(func=_cmd_up)

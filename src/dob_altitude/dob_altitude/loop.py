@@ -25,7 +25,7 @@ from deckland_common.frames import quaternion_to_euler
 from deckland_common import validate as chk
 from dob_altitude import adapter
 from dob_altitude.adapter import ROTOR_HEIGHT_OFFSET_M, AltitudeController
-from dob_altitude.types import AltitudeOutput
+from dob_altitude.types import AltitudeInput, AltitudeOutput
 
 REJECTED = ('non_finite', 'bad_size', 'bad_layout', 'out_of_order', 'stale_stamp',
             'future_stamp', 'bad_frame', 'bad_quaternion')
@@ -79,6 +79,7 @@ class AltitudeLoop(InputGuard):
         self.last_t_s = 0.0          # t_s of the apron state of the last step
         self.frame_used = ''
         self.last_output: AltitudeOutput | None = None
+        self.last_input: AltitudeInput | None = None   # the input of last_output
         #: controller steps, resets, frame switches
         self.counts: dict[str, int] = {'steps': 0, 'resets': 0, 'frame_switches': 0}
 
@@ -235,4 +236,5 @@ class AltitudeLoop(InputGuard):
         self.last_t_s = st.t_s
         self.frame_used = frame
         self.last_output = out
+        self.last_input = inp
         return out

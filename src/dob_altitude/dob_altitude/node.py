@@ -12,7 +12,13 @@ from __future__ import annotations
 
 import sys
 
-from deckland_common.contract import VehicleDescription, decode_apron_array
+from deckland_common.contract import VehicleDescription
+from deckland_common.messages import (
+    apron_state_from_msg,
+    fill_altitude_state,
+    time_to_s,
+    vertical_frame_name,
+)
 from deckland_common.params import ParameterError, ParamSpec, in_range, one_of, positive
 from deckland_common.ros_node import (
     LATCHED_QOS,
@@ -25,12 +31,13 @@ from deckland_common.ros_node import (
     stamp_to_s,
 )
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import Vector3Stamped, WrenchStamped
+from geometry_msgs.msg import WrenchStamped
 from rclpy.node import Node
 from sensor_msgs.msg import Imu
-from std_msgs.msg import Bool, Float64MultiArray
-from trajectory_msgs.msg import MultiDOFJointTrajectory
+from std_msgs.msg import Bool
 
+from deckland_interfaces.msg import AltitudeState, PlannerReference
+from deckland_interfaces.msg import ApronState as ApronStateMsg
 from dob_altitude.adapter import (
     CONTROLLER_KINDS,
     GAIN_PROFILES,
@@ -74,7 +81,7 @@ PARAMS = [
               lambda v: 1.0 <= v <= 1000.0, 'must be in [1, 1000]'),
     positive('input_timeout_s', 0.2,
              'max age of apron/state, planner/reference and vehicle/imu stamps; older = stale'),
-    ParamSpec('base_frame', 'base_link', 'frame_id of control/thrust and altitude/observer',
+    ParamSpec('base_frame', 'base_link', 'frame_id of control/thrust and altitude/state',
               lambda v: bool(v.strip()), 'must not be empty'),
 ]
 
@@ -100,18 +107,17 @@ class DobAltitudeNode(GuardedNode, Node):
         frame_id = p['base_frame']
 
         self.pub_thrust = self.create_publisher(WrenchStamped, 'control/thrust', RELIABLE_QOS)
-        self.pub_observer = self.create_publisher(Vector3Stamped, 'altitude/observer',
-                                                  RELIABLE_QOS)
+        self.pub_state = self.create_publisher(AltitudeState, 'altitude/state', RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', RELIABLE_QOS)
-        self.create_subscription(Float64MultiArray, 'apron/state', self._on_apron, SENSOR_QOS)
-        self.create_subscription(MultiDOFJointTrajectory, 'planner/reference',
+        self.create_subscription(ApronStateMsg, 'apron/state', self._on_apron, SENSOR_QOS)
+        self.create_subscription(PlannerReference, 'planner/reference',
                                  self._on_reference, RELIABLE_QOS)
         self.create_subscription(Imu, 'vehicle/imu', self._on_imu, SENSOR_QOS)
         self.create_subscription(Bool, 'control/enabled', self._on_enabled, LATCHED_QOS)
         self._msg_thrust = WrenchStamped()
         self._msg_thrust.header.frame_id = frame_id
-        self._msg_observer = Vector3Stamped()
-        self._msg_observer.header.frame_id = frame_id
+        self._msg_state = AltitudeState()
+        self._frame_id = frame_id
         self.create_timer(p['input_timeout_s'] / 2.0, self._on_watchdog)
         self.create_timer(1.0, self._publish_diagnostics)
         self._steps_at_diag = 0
@@ -121,9 +127,8 @@ class DobAltitudeNode(GuardedNode, Node):
 
     # --- subscriptions (message → plain numbers → the loop) --------------------------------
 
-    def _on_apron(self, msg: Float64MultiArray) -> None:
-        dims = msg.layout.dim
-        state, reason, detail = decode_apron_array(dims[0].label if dims else None, msg.data)
+    def _on_apron(self, msg: ApronStateMsg) -> None:
+        state, reason, detail = apron_state_from_msg(msg)
         if state is None:
             self._reject(reason, detail)
             return
@@ -134,27 +139,17 @@ class DobAltitudeNode(GuardedNode, Node):
         s_to_stamp(state.t_s, thrust.header.stamp)
         thrust.wrench.force.z = out.thrust_n
         self.pub_thrust.publish(thrust)
-        if not self.pub_observer.get_subscription_count():
+        core = self.core
+        if not self.pub_state.get_subscription_count() or core.last_input is None:
             return      # lazy: Figure 9's σ and d̂ only while something subscribes
-        obs = self._msg_observer
-        s_to_stamp(state.t_s, obs.header.stamp)
-        obs.vector.x = out.sigma
-        obs.vector.y = out.d_hat_mps2
-        obs.vector.z = out.e_z_m
-        self.pub_observer.publish(obs)
+        self.pub_state.publish(fill_altitude_state(
+            self._msg_state, state.t_s, self.cfg['controller'], core.frame_used,
+            core.last_input, out, self._frame_id))
 
-    def _on_reference(self, msg: MultiDOFJointTrajectory) -> None:
-        pts = msg.points
-        if (len(pts) != 1 or not pts[0].transforms or not pts[0].velocities
-                or not pts[0].accelerations):
-            self._reject('bad_size', 'planner/reference (need one point with a transform, '
-                         'a velocity and an acceleration)')
-            return
-        pt = pts[0]
-        self.core.on_reference(self._now_s(), stamp_to_s(msg.header.stamp),
-                               msg.joint_names[0] if msg.joint_names else '',
-                               pt.transforms[0].translation.z, pt.velocities[0].linear.z,
-                               pt.accelerations[0].linear.z)
+    def _on_reference(self, msg: PlannerReference) -> None:
+        self.core.on_reference(self._now_s(), time_to_s(msg.header.stamp),
+                               vertical_frame_name(msg.vertical_frame), msg.z_d_m,
+                               msg.z_d_dot_mps, msg.z_d_ddot_mps2)
 
     def _on_imu(self, msg: Imu) -> None:
         q = msg.orientation

@@ -14,8 +14,13 @@ from __future__ import annotations
 
 import sys
 
-from deckland_common.contract import VERTICAL_RELATIVE, ApronState, decode_apron_array
+from deckland_common.contract import VERTICAL_RELATIVE, ApronState, Mode
 from deckland_common.frames import euler_to_quaternion
+from deckland_common.messages import (
+    apron_state_from_msg,
+    fill_planner_reference,
+    fill_planner_status,
+)
 from deckland_common.ros_node import (
     LATCHED_QOS,
     RELIABLE_QOS,
@@ -27,13 +32,14 @@ from deckland_common.ros_node import (
     stamp_to_s,
 )
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped, QuaternionStamped, Transform, Twist, TwistStamped
+from geometry_msgs.msg import PoseStamped, QuaternionStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from std_msgs.msg import Bool, Float64MultiArray, String
+from std_msgs.msg import Bool, String
 from std_srvs.srv import Trigger
-from trajectory_msgs.msg import MultiDOFJointTrajectory, MultiDOFJointTrajectoryPoint
 
+from deckland_interfaces.msg import ApronState as ApronStateMsg
+from deckland_interfaces.msg import PlannerReference, PlannerStatus
 from landing_planner.horizontal import HorizontalController
 from landing_planner.loop import PlannerLoop, PlannerTick
 from landing_planner.node_params import PARAMS, params_from
@@ -66,13 +72,14 @@ class LandingPlannerNode(GuardedNode, Node):
 
         self.pub_attitude = self.create_publisher(QuaternionStamped, 'control/attitude',
                                                   RELIABLE_QOS)
-        self.pub_reference = self.create_publisher(MultiDOFJointTrajectory, 'planner/reference',
+        self.pub_reference = self.create_publisher(PlannerReference, 'planner/reference',
                                                    RELIABLE_QOS)
+        self.pub_status = self.create_publisher(PlannerStatus, 'planner/status', LATCHED_QOS)
         self.pub_setpoint = self.create_publisher(PoseStamped, 'planner/setpoint', RELIABLE_QOS)
         self.pub_mode = self.create_publisher(String, 'planner/mode', LATCHED_QOS)
         self.pub_enabled = self.create_publisher(Bool, 'control/enabled', LATCHED_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', RELIABLE_QOS)
-        self.create_subscription(Float64MultiArray, 'apron/state', self._on_apron, SENSOR_QOS)
+        self.create_subscription(ApronStateMsg, 'apron/state', self._on_apron, SENSOR_QOS)
         self.create_subscription(Odometry, 'vehicle/odom', self._on_odom, SENSOR_QOS)
         self.create_subscription(TwistStamped, 'vehicle/velocity', self._on_velocity,
                                  SENSOR_QOS)
@@ -95,23 +102,17 @@ class LandingPlannerNode(GuardedNode, Node):
         att = QuaternionStamped()
         att.header.frame_id = self._map
         self._msg_att = att
-        self._tf, self._vel_ff, self._acc = Transform(), Twist(), Twist()
-        ref = MultiDOFJointTrajectory()
-        ref.header.frame_id = self._map
-        ref.joint_names = ['']
-        ref.points = [MultiDOFJointTrajectoryPoint(transforms=[self._tf],
-                                                   velocities=[self._vel_ff],
-                                                   accelerations=[self._acc])]
-        self._msg_ref = ref
+        self._msg_ref = PlannerReference()
+        self._msg_status = PlannerStatus()
+        self._last_output = None
         pose = PoseStamped()
         pose.header.frame_id = self._map
         self._msg_pose = pose
 
     # --- subscriptions (message → plain numbers → the loop) --------------------------------
 
-    def _on_apron(self, msg: Float64MultiArray) -> None:
-        dims = msg.layout.dim
-        st, reason, detail = decode_apron_array(dims[0].label if dims else None, msg.data)
+    def _on_apron(self, msg: ApronStateMsg) -> None:
+        st, reason, detail = apron_state_from_msg(msg)
         if st is None:
             self._reject(reason, detail)
             return
@@ -158,6 +159,7 @@ class LandingPlannerNode(GuardedNode, Node):
         if tick is None:
             return
         out = tick.output
+        self._last_output = out
         self._publish_mode()
         self._publish_enabled(out.thrust_enabled)
         if tick.publish_reference:
@@ -171,26 +173,16 @@ class LandingPlannerNode(GuardedNode, Node):
             self.pub_attitude.publish(att)
 
     def _publish_reference(self, out, apron: ApronState, stamp_s: float) -> None:
-        sx, sy = out.setpoint_m
-        fx, fy = out.velocity_ff_mps
-        qw, qx, qy, qz = euler_to_quaternion(0.0, 0.0, out.yaw_rad)
-        tf = self._tf
-        tf.translation.x, tf.translation.y, tf.translation.z = sx, sy, out.z_d_m
-        tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z = qw, qx, qy, qz
-        vel = self._vel_ff.linear
-        vel.x, vel.y, vel.z = fx, fy, out.z_d_dot_mps
-        self._acc.linear.z = out.z_d_ddot_mps2
-        ref = self._msg_ref
-        s_to_stamp(stamp_s, ref.header.stamp)
-        if ref.joint_names[0] != out.vertical_mode:
-            ref.joint_names = [out.vertical_mode]
-        self.pub_reference.publish(ref)
+        self.pub_reference.publish(fill_planner_reference(self._msg_ref, out, stamp_s,
+                                                          self._map))
 
         # viewers: the setpoint as a map pose (a height above the surface is shifted by the
         # estimated surface height when it is known). Lazy: nothing in the control chain
         # reads it, so it is built and published only while something subscribes.
         if not self.pub_setpoint.get_subscription_count():
             return
+        sx, sy = out.setpoint_m
+        qw, qx, qy, qz = euler_to_quaternion(0.0, 0.0, out.yaw_rad)
         z = out.z_d_m
         if out.vertical_mode == VERTICAL_RELATIVE and apron.vertical.valid:
             z += apron.vertical.surface_height_m
@@ -208,8 +200,17 @@ class LandingPlannerNode(GuardedNode, Node):
         if self._mode_published is not None:
             self.get_logger().info(f'mode {self._mode_published.name} → {mode.name}: '
                                    f'{self.planner.reason}')
+        previous = self._mode_published or Mode.IDLE
         self._mode_published = mode
         self.pub_mode.publish(String(data=mode.name))
+        now = self._now_s()
+        st = fill_planner_status(self._msg_status, mode, previous, now, self.planner.reason,
+                                 self.planner.searches)
+        s_to_stamp(now, st.header.stamp)
+        st.header.frame_id = self._map
+        if self._last_output is not None:
+            fill_planner_reference(st.reference, self._last_output, now, self._map)
+        self.pub_status.publish(st)
 
     def _publish_enabled(self, enabled: bool) -> None:
         if enabled is self._enabled_published:

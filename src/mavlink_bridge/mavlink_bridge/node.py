@@ -43,6 +43,7 @@ from sensor_msgs.msg import Imu, Range
 from std_msgs.msg import Bool, String
 from std_srvs.srv import SetBool, Trigger
 
+from deckland_interfaces.msg import LinkStatus
 from mavlink_bridge.conversions import (
     MAV_SENSOR_ROTATION_PITCH_270,
     PX4_OFFBOARD_LOSS_ACTIONS,
@@ -202,6 +203,7 @@ class MavlinkBridgeNode(Node):
         self.create_service(SetBool, 'bridge/arm', self._srv_arm)
         self.create_service(Trigger, 'bridge/offboard', self._srv_offboard)
         self.pub_diag = self.create_publisher(DiagnosticArray, 'diagnostics', RELIABLE_QOS)
+        self.pub_status = self.create_publisher(LinkStatus, 'bridge/status', RELIABLE_QOS)
         self.create_timer(0.02, self._on_timer)
         self.create_timer(1.0, self._publish_diagnostics)
         self._build_messages()
@@ -510,6 +512,23 @@ class MavlinkBridgeNode(Node):
             measured = core.hover.estimate
             problem = core.px4_config_problem() or core.ardupilot_config_problem()
             params = dict(core.autopilot_params)
+            link = LinkStatus(
+                autopilot=(LinkStatus.AUTOPILOT_PX4 if core.params.autopilot == 'px4'
+                           else LinkStatus.AUTOPILOT_ARDUPILOT),
+                autopilot_mode=mode, offboard=core.in_offboard(), link_up=core.link_up(now),
+                armed=bool(core.armed), streaming=core.streaming(now),
+                stream_age_s=core.stream_age_s(now), window_s=1.0,
+                latency_valid=not math.isnan(lat), degraded=degraded,
+                reason=reason if degraded else '', last_result=last,
+                setpoints_sent=counters['setpoints_sent'],
+                rejected=sum(core.rejected.values()) + sum(mon.rejected.values()))
+        # the timer runs at 1 Hz: rate and largest gap are over the last second
+        link.setpoint_rate_hz = 0.0 if math.isnan(rate) else rate
+        link.largest_gap_s = 1.0 if math.isnan(gap) else gap
+        if link.latency_valid:
+            link.latency_s, link.rtt_s = lat, rtt
+        link.header.stamp = self.get_clock().now().to_msg()
+        self.pub_status.publish(link)
         st = DiagnosticStatus(name='mavlink_bridge: link', hardware_id='mavlink')
         if degraded:
             st.level, st.message = DiagnosticStatus.ERROR, reason

@@ -24,6 +24,8 @@ import tempfile
 import time
 import weakref
 
+from deckland.sitl import SitlNotFoundError, SitlStartError
+
 #: airframes used here (PX4 v1.16 ROMFS): SIH quadrotor, built-in physics; Iris for an
 #: external simulator over the Simulator MAVLink API (TCP 4560 + instance)
 SIH_QUADX = (10040, 'sihsim_quadx')
@@ -41,12 +43,27 @@ def _cleanup(pid: int, workdir: str) -> None:
     shutil.rmtree(workdir, ignore_errors=True)
 
 
-class Px4NotFoundError(RuntimeError):
+class Px4NotFoundError(SitlNotFoundError):
     """No PX4 SITL build at ``$DECKLAND_PX4_SITL`` or ``../shared/px4-sitl``."""
 
 
-class Px4StartError(RuntimeError):
+class Px4StartError(SitlStartError):
     """PX4 did not come up (the message carries the end of its log)."""
+
+
+#: a float parameter set to exactly 0.0 is sent as this: PX4 stores only values that differ
+#: from the compiled default, so a 0.0 equal to it is not kept and the airframe's later
+#: ``param set-default`` wins (measured: none_iris kept its CA_ROTOR1_PX = -0.1515 for a
+#: requested 0.0; PX4's own rcS sets SENS_BOARD_X_OFF 0.000001 for the same reason)
+ZERO_FLOAT = 1e-6
+
+
+def px4_param_text(value: float | int) -> str:
+    """A parameter value as ``PX4_PARAM_*`` text (floats with a '.', 0.0 as
+    :data:`ZERO_FLOAT`)."""
+    if isinstance(value, float):
+        return repr(ZERO_FLOAT if value == 0.0 else value)
+    return str(int(value))
 
 
 def find_px4(env: dict[str, str] | None = None) -> pathlib.Path | None:
@@ -68,6 +85,16 @@ def find_px4(env: dict[str, str] | None = None) -> pathlib.Path | None:
                 f'DECKLAND_PX4_SITL={given}: no bin/px4 and etc/init.d-posix/rcS there (build '
                 'PX4 v1.16 with `make px4_sitl_default` and point it at build/px4_sitl_default)')
     return None
+
+
+def require_px4() -> pathlib.Path:
+    """:func:`find_px4`, or Px4NotFoundError saying how to get PX4 SITL."""
+    found = find_px4()
+    if found is None:
+        raise Px4NotFoundError('PX4 SITL not found: set DECKLAND_PX4_SITL to a PX4 v1.16 '
+                               'build/px4_sitl_default folder (`make px4_sitl_default` at '
+                               'v1.16.0), or provide ../shared/px4-sitl')
+    return found
 
 
 def ports(instance: int) -> dict[str, int]:
@@ -142,10 +169,7 @@ class Px4Sitl:
                  = None, instance: int | None = None, nice: int = 0, logging: bool = False,
                  keep_log_dir: pathlib.Path | None = None, extra_env: dict[str, str] | None
                  = None) -> None:
-        found = root if root is not None else find_px4()
-        if found is None:
-            raise Px4NotFoundError('PX4 SITL not found: set DECKLAND_PX4_SITL to a PX4 v1.16 '
-                                   'build/px4_sitl_default folder (or ../shared/px4-sitl)')
+        found = root if root is not None else require_px4()
         self.root = pathlib.Path(found)
         self.airframe = airframe
         self.params = dict(params or {})
@@ -232,7 +256,7 @@ class Px4Sitl:
         if not self.logging:
             params.setdefault('SDLOG_MODE', -1)
         for k, v in params.items():
-            env[f'PX4_PARAM_{k}'] = repr(float(v)) if isinstance(v, float) else str(v)
+            env[f'PX4_PARAM_{k}'] = px4_param_text(v)
         env.update(self.extra_env)
         cmd = [str(bindir / 'px4'), '-d', '-i', str(self.instance), str(self.root / 'etc')]
         if self.nice:

@@ -1,0 +1,170 @@
+"""The 3-D scene of the live view as plain geometry (pure: no rclpy, no foxglove).
+
+:class:`SceneState` holds the latest value of each input (decoded from the graph's topics by
+:mod:`deckland.viz`, or from a bag for a snapshot); :func:`build_scene` turns it into
+:class:`Item` s in ``map`` (ENU): the deck plane with its tilt and pad outline, the beacon, the
+vehicle, the estimated apron with its 2-σ covariance ellipse, the planner setpoint and the
+camera footprint on the deck plane. :mod:`deckland.viz` converts the items to a Foxglove
+``SceneUpdate``; :func:`deckland.viz.render_png` draws the same items with matplotlib.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+
+from apron_estimator.camera import CameraModel, CameraParams
+from deckland_common.frames import mat_vec, quaternion_to_euler, rot_body_to_world
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]   # (w, x, y, z)
+Rgba = tuple[float, float, float, float]
+
+#: Colours of the scene (RGBA in [0, 1]).
+COLORS: dict[str, Rgba] = {
+    'deck': (0.45, 0.50, 0.55, 0.6), 'pad': (1.0, 0.85, 0.1, 1.0),
+    'beacon': (1.0, 0.2, 0.1, 1.0), 'vehicle': (0.2, 0.5, 1.0, 0.9),
+    'estimate': (0.1, 0.9, 0.3, 1.0), 'setpoint': (0.9, 0.2, 0.9, 1.0),
+    'footprint': (0.2, 0.9, 0.9, 1.0)}
+#: The deck plane drawn around the pad (m beyond each pad edge).
+DECK_MARGIN_M = 0.5
+#: Vehicle box (paper's quadcopter, ~0.55 m across the rotors; 0.15 m high).
+VEHICLE_SIZE_M: Vec3 = (0.55, 0.55, 0.15)
+BEACON_DIAMETER_M = 0.08
+#: Covariance ellipses drawn at this many standard deviations.
+ELLIPSE_SIGMAS = 2.0
+ELLIPSE_POINTS = 36
+
+
+@dataclass
+class SceneState:
+    """The latest value of each scene input (None = not received yet)."""
+
+    pad_size_m: tuple[float, float] = (1.05, 0.85)     # scenario apron size (Table 3)
+    beacon_m: Vec3 | None = None                       # pad centre on the pad top (truth)
+    deck_orientation: Quat = (1.0, 0.0, 0.0, 0.0)      # deck attitude (level unless known)
+    vehicle_m: Vec3 | None = None
+    vehicle_orientation: Quat = (1.0, 0.0, 0.0, 0.0)
+    vehicle_source: str = ''                           # topic the vehicle pose came from
+    estimate_m: Vec3 | None = None                     # apron position + surface height
+    estimate_cov_m2: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    tracked: bool = False
+    setpoint_m: Vec3 | None = None
+    mode: str = ''
+    camera: CameraParams = field(default_factory=CameraParams)
+
+
+@dataclass(frozen=True)
+class Item:
+    """One primitive in ``map``: ``kind`` 'cube' (pose + size), 'sphere' (pose + size),
+    'line' (closed loop through ``points``), 'arrow' (pose, +x, length = size[0]) or 'text'."""
+
+    entity: str
+    kind: str
+    color: Rgba
+    position: Vec3 = (0.0, 0.0, 0.0)
+    orientation: Quat = (1.0, 0.0, 0.0, 0.0)
+    size: Vec3 = (0.0, 0.0, 0.0)
+    points: tuple[Vec3, ...] = ()
+    text: str = ''
+
+
+def rotate(q: Quat, v: Vec3) -> Vec3:
+    """``v`` rotated by the unit quaternion ``q`` (w, x, y, z)."""
+    roll, pitch, yaw = quaternion_to_euler(*q)
+    return mat_vec(rot_body_to_world(roll, pitch, yaw), v)
+
+
+def rectangle(center: Vec3, size: tuple[float, float], q: Quat) -> tuple[Vec3, ...]:
+    """The four corners of a ``size`` rectangle centred on ``center`` in the plane of ``q``."""
+    hx, hy = size[0] / 2.0, size[1] / 2.0
+    out = []
+    for dx, dy in ((hx, hy), (-hx, hy), (-hx, -hy), (hx, -hy)):
+        r = rotate(q, (dx, dy, 0.0))
+        out.append((center[0] + r[0], center[1] + r[1], center[2] + r[2]))
+    return tuple(out)
+
+
+def covariance_ellipse(cov: tuple[float, float, float, float], n_sigma: float = ELLIPSE_SIGMAS
+                       ) -> tuple[float, float, float]:
+    """Semi-axes (major, minor) and the major axis' angle from +x of the ``n_sigma`` ellipse
+    of a 2×2 covariance (row-major); negative variances count as zero."""
+    a, b, d = cov[0], 0.5 * (cov[1] + cov[2]), cov[3]
+    mean, diff = 0.5 * (a + d), 0.5 * (a - d)
+    r = math.hypot(diff, b)
+    l1, l2 = max(mean + r, 0.0), max(mean - r, 0.0)
+    angle = 0.5 * math.atan2(2.0 * b, a - d)
+    return n_sigma * math.sqrt(l1), n_sigma * math.sqrt(l2), angle
+
+
+def ellipse_points(center: Vec3, cov: tuple[float, float, float, float],
+                   n: int = ELLIPSE_POINTS) -> tuple[Vec3, ...]:
+    """Points of the 2-σ ellipse of ``cov`` around ``center``, horizontal."""
+    major, minor, ang = covariance_ellipse(cov)
+    ca, sa = math.cos(ang), math.sin(ang)
+    pts = []
+    for i in range(n):
+        t = 2.0 * math.pi * i / n
+        ex, ey = major * math.cos(t), minor * math.sin(t)
+        pts.append((center[0] + ca * ex - sa * ey, center[1] + sa * ex + ca * ey, center[2]))
+    return tuple(pts)
+
+
+def camera_footprint(position: Vec3, q: Quat, plane_z_m: float,
+                     camera: CameraParams | None = None) -> tuple[Vec3, ...] | None:
+    """Where the image corners' rays meet the horizontal plane ``z = plane_z_m`` (the camera
+    at the body origin, the estimator's camera model); None when a corner ray misses it."""
+    cam = CameraModel(camera)
+    p = cam.params
+    roll, pitch, yaw = quaternion_to_euler(*q)
+    out = []
+    for px, py in ((0.0, 0.0), (p.width_px, 0.0), (p.width_px, p.height_px), (0.0, p.height_px)):
+        d = cam.ray_world(px, py, roll, pitch, yaw)
+        if d[2] >= -1e-6 or position[2] <= plane_z_m:
+            return None
+        s = (plane_z_m - position[2]) / d[2]
+        out.append((position[0] + s * d[0], position[1] + s * d[1], plane_z_m))
+    return tuple(out)
+
+
+def build_scene(s: SceneState) -> list[Item]:
+    """The scene items for the current state (only what is known is drawn)."""
+    c = COLORS
+    items: list[Item] = []
+    deck_z = None
+    if s.beacon_m is not None:
+        b = s.beacon_m
+        deck_z = b[2]
+        sx, sy = s.pad_size_m
+        items.append(Item('deck', 'cube', c['deck'], position=(b[0], b[1], b[2] - 0.01),
+                          orientation=s.deck_orientation,
+                          size=(sx + 2 * DECK_MARGIN_M, sy + 2 * DECK_MARGIN_M, 0.02)))
+        items.append(Item('deck', 'line', c['pad'],
+                          points=rectangle((b[0], b[1], b[2] + 0.002), s.pad_size_m,
+                                           s.deck_orientation)))
+        d = BEACON_DIAMETER_M
+        items.append(Item('beacon', 'sphere', c['beacon'], position=b, size=(d, d, d)))
+    if s.estimate_m is not None and s.tracked:
+        e = s.estimate_m
+        if deck_z is None:
+            deck_z = e[2]
+        items.append(Item('estimate', 'sphere', c['estimate'], position=e,
+                          size=(0.05, 0.05, 0.05)))
+        items.append(Item('estimate', 'line', c['estimate'],
+                          points=ellipse_points((e[0], e[1], e[2] + 0.004), s.estimate_cov_m2)))
+    if s.vehicle_m is not None:
+        v, q = s.vehicle_m, s.vehicle_orientation
+        items.append(Item('vehicle', 'cube', c['vehicle'], position=v, orientation=q,
+                          size=VEHICLE_SIZE_M))
+        items.append(Item('vehicle', 'arrow', c['vehicle'], position=v, orientation=q,
+                          size=(0.45, 0.03, 0.0)))
+        if s.mode:
+            items.append(Item('vehicle', 'text', (1.0, 1.0, 1.0, 1.0),
+                              position=(v[0], v[1], v[2] + 0.35), text=s.mode))
+        fp = camera_footprint(v, q, deck_z if deck_z is not None else 0.0, s.camera)
+        if fp is not None:
+            items.append(Item('footprint', 'line', c['footprint'], points=fp))
+    if s.setpoint_m is not None:
+        items.append(Item('setpoint', 'sphere', c['setpoint'], position=s.setpoint_m,
+                          size=(0.1, 0.1, 0.1)))
+    return items
