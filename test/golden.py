@@ -774,14 +774,20 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
     _isolate_ros_domain()
     from deckland.bag import Recorder
     from deckland.orchestrator import Orchestrator, load_graph
-    from deckland.up import MissionMonitor, default_graph_path, graph_substitutions
+    from deckland.up import (
+        MissionMonitor,
+        UdpReservations,
+        default_graph_path,
+        graph_substitutions,
+    )
 
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()) and not (out / META_NAME).exists():
         raise ValueError(f'{out} is not empty and not a golden bag; not overwriting')
     args = argparse.Namespace(scenario=scenario, seed=seed, hardware=False, mavlink=None,
                               pixy_port=None, area=(0.0, 0.0))
-    graph = load_graph(default_graph_path(), graph_substitutions(args), False)
+    udp = UdpReservations()   # the listening sockets, bound now and inherited by the nodes
+    graph = load_graph(default_graph_path(), graph_substitutions(args, udp), False)
     overrides = {n.name: dict(n.parameters) for n in graph['nodes'] if n.name in NODE_DEFAULTS}
     # The estimator is clocked by its inputs (clock: imu) for the recording: each apron/state
     # then follows a recorded input, so the pure replay can tell exactly which inputs it had.
@@ -797,8 +803,8 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
                         context=monitor.context, discovery_period_s=0.05, depth=1000)
     sim = [n for n in graph['nodes'] if n.sim_only]
     orch = Orchestrator([n for n in graph['nodes'] if not n.sim_only], out=log,
-                        stop_timeout_s=5.0)
-    orch_sim = Orchestrator(sim, out=log, stop_timeout_s=5.0)
+                        stop_timeout_s=5.0, pass_fds=udp.fds())
+    orch_sim = Orchestrator(sim, out=log, stop_timeout_s=5.0, pass_fds=udp.fds())
     outcome = None
     try:
         recorder.start()
@@ -824,6 +830,9 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
     finally:
         orch_sim.stop()
         orch.stop()
+        orch_sim.close()
+        orch.close()
+        udp.close()
         recorder.stop()
         monitor.close()
     if outcome is None or not outcome.get('success'):

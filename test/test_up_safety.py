@@ -11,6 +11,7 @@ import tokenize
 from deckland.orchestrator import load_graph
 from deckland.up import (
     EXIT_CODES,
+    UdpReservations,
     default_graph_path,
     graph_substitutions,
     prepare_record_dir,
@@ -55,7 +56,11 @@ def is_loopback(host: str) -> bool:
 
 
 def socket_parameters(hardware: bool, **kw):
-    subs = graph_substitutions(sim_args(hardware=hardware, **kw))
+    udp = UdpReservations()
+    try:
+        subs = graph_substitutions(sim_args(hardware=hardware, **kw), udp)
+    finally:
+        udp.close()
     graph = load_graph(default_graph_path(), subs, hardware)
     out = []
     for spec in graph['nodes']:

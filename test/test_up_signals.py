@@ -1,6 +1,7 @@
-"""A real ``deckland up`` subprocess stopped with SIGTERM once the topics flow: every child pid
-is gone within 5 s, the exit status is 143 (128 + SIGTERM, README-up.md), and the bag being
-recorded is finished and readable, with report.json saying why the run ended."""
+"""A real ``deckland up`` subprocess stopped with SIGINT or SIGTERM once the topics flow: every
+child pid is gone within 5 s, no node prints a traceback or FATAL, the exit status is 128 + the
+signal (README-up.md), and the bag being recorded is finished and readable, with report.json
+saying why the run ended."""
 
 import json
 import pathlib
@@ -27,7 +28,8 @@ def alive(pid: int) -> bool:
         return False
 
 
-def test_sigterm_stops_every_child_within_5_s_and_finishes_the_bag(tmp_path):
+@pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_stops_every_child_within_5_s_cleanly_and_finishes_the_bag(tmp_path, sig):
     run = tmp_path / 'run'
     log = tmp_path / 'up.log'
     with open(log, 'w') as out:
@@ -45,18 +47,22 @@ def test_sigterm_stops_every_child_within_5_s_and_finishes_the_bag(tmp_path):
         assert len(pids) == 6
         time.sleep(1.0)                       # well into the mission
         t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         while any(alive(p) for p in pids) and time.monotonic() - t0 < 10.0:
             time.sleep(0.02)
         children_gone_s = time.monotonic() - t0
-        code = proc.wait(timeout=15.0)
+        # the children are the 5 s requirement; deckland up then finishes the bag and reads
+        # it back (bag_info: 17 s at loadavg 50, most of its own exit time there)
+        code = proc.wait(timeout=60.0)
     finally:
         if proc.poll() is None:
             proc.kill()
     text = log.read_text()
     assert children_gone_s <= 5.0, text
-    assert code == 128 + signal.SIGTERM, text
-    assert 'interrupted by SIGTERM' in text and 'exit status       143' in text
+    name = signal.Signals(sig).name
+    assert code == 128 + sig, text
+    assert f'interrupted by {name}' in text and f'exit status       {128 + sig}' in text
+    assert 'Traceback' not in text and 'FATAL' not in text, text
     # the bag is finished (footer, index, metadata) and holds the mission since the trigger
     assert not is_recording(run) and not needs_reindex(run)
     info = bag_info(run, recover=False)
@@ -64,6 +70,6 @@ def test_sigterm_stops_every_child_within_5_s_and_finishes_the_bag(tmp_path):
     assert topics.get('control/thrust', 0) > 50 and topics.get('planner/mode', 0) >= 1
     assert info.duration_s > 1.0
     report = json.loads((run / 'report.json').read_text())
-    assert report['interrupted'] == 'SIGTERM' and report['exit_status'] == 143
+    assert report['interrupted'] == name and report['exit_status'] == 128 + sig
     assert report['success'] is False and report['bag']['messages'] == info.message_count
     assert 'crashed_nodes' not in report          # the stop is not a crash

@@ -68,6 +68,9 @@ PARAMS = [
               "listening there (bridge default 'udpin:127.0.0.1:14540'); 'udpin:HOST:PORT' "
               "listens for a bridge configured 'udpout:HOST:PORT'", is_mavlink_url,
               "must be 'udpin:IPV4:PORT' or 'udpout:IPV4:PORT'"),
+    in_range('mavlink_fd', -1, -1, 65535, 'an inherited UDP socket already bound to the '
+             'udpin mavlink_url (deckland up binds it before starting the graph); -1: bind '
+             'it here'),
     ParamSpec('pixy_udp_address', '127.0.0.1', "where pixy_driver listens (its "
               "'udp_bind_address')", is_ipv4, 'must be an IPv4 literal'),
     in_range('pixy_udp_port', 14600, 1, 65535, "pixy_driver's 'udp_port'"),
@@ -139,7 +142,7 @@ class DeckSimulatorNode(Node):
             self.sim = self._px4_loop(scenario, p)
             local, target = None, f"PX4 SITL on TCP {p['px4_sim_port']}"
         else:
-            link = self._open_link('mavlink_url', p['mavlink_url'])
+            link = self._open_link('mavlink_url', p['mavlink_url'], p['mavlink_fd'])
             # the autopilot maps normalised thrust to the *vehicle's* newtons: hover at 1/(T/W)
             self.emulator = Px4Emulator(EmulatorParams(
                 thrust=vehicle_thrust_calibration(scenario.vehicle),
@@ -166,9 +169,9 @@ class DeckSimulatorNode(Node):
             f"scenario {scenario.name!r} seed {p['seed']}: {target}{where}, Pixy -> "
             f"{pixy_addr[0]}:{pixy_addr[1]}, x{p['realtime_factor']:g} real time")
 
-    def _open_link(self, name: str, url: str):
+    def _open_link(self, name: str, url: str, fd: int = -1):
         try:
-            link = make_mavlink_link(url)
+            link = make_mavlink_link(url, fd)
         except OSError as exc:
             raise ParameterError(f'parameter {name!r} = {url!r}: cannot open the socket: '
                                  f'{exc}') from None
@@ -194,7 +197,7 @@ class DeckSimulatorNode(Node):
                 raise ParameterError("parameter 'px4_onboard_url' must be 'udpin:HOST:PORT' "
                                      '(where PX4 sends its onboard link)')
             # PX4 sends there unasked; the relay answers whoever sent (PX4's 14580 + i)
-            relay = (self._open_link('mavlink_url', p['mavlink_url']),
+            relay = (self._open_link('mavlink_url', p['mavlink_url'], p['mavlink_fd']),
                      self._open_link('px4_onboard_url', p['px4_onboard_url']))
 
         def firmware(world) -> Px4Hil:

@@ -9,6 +9,7 @@ valid packet); :class:`MemoryLink` is an in-memory pair for tests. Every transpo
 from __future__ import annotations
 
 import ipaddress
+import os
 import re
 import socket
 
@@ -65,13 +66,17 @@ class UdpTransport:
     guessed port. The emulator calls :meth:`set_peer` with the source of every valid packet.
     """
 
-    def __init__(self, bind: tuple[str, int], remote: tuple[str, int] | None) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            self.sock.bind(bind)
-        except OSError:
-            self.sock.close()
-            raise
+    def __init__(self, bind: tuple[str, int] | None, remote: tuple[str, int] | None,
+                 sock: socket.socket | None = None) -> None:
+        if sock is None:
+            assert bind is not None
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            try:
+                sock.bind(bind)
+            except OSError:
+                sock.close()
+                raise
+        self.sock = sock
         self.sock.setblocking(False)
         self.remote = remote
         self.send_errors = 0
@@ -111,9 +116,22 @@ class UdpTransport:
         self.sock.close()
 
 
-def make_mavlink_link(url: str) -> UdpTransport:
-    """The emulator's socket for ``mavlink_url`` (see :func:`parse_mavlink_url`)."""
+def make_mavlink_link(url: str, fd: int = -1) -> UdpTransport:
+    """The emulator's socket for ``mavlink_url`` (see :func:`parse_mavlink_url`).
+
+    ``fd >= 0`` (``udpin`` only): a UDP socket already bound there and inherited (deckland up
+    binds it before starting the graph, so the port cannot be taken in between); it is
+    duplicated, the caller keeps its own descriptor.
+    """
     mode, host, port = parse_mavlink_url(url)
+    if fd >= 0:
+        if mode != 'in':
+            raise OSError(f'an inherited socket (fd {fd}) needs a udpin URL, got {url!r}')
+        sock = socket.socket(fileno=os.dup(fd))
+        if sock.type != socket.SOCK_DGRAM or sock.getsockname()[1] != port:
+            sock.close()
+            raise OSError(f'fd {fd} is not a UDP socket bound to port {port}')
+        return UdpTransport(None, None, sock)
     if mode == 'in':
         return UdpTransport((host, port), None)
     bind_host = '127.0.0.1' if ipaddress.IPv4Address(host).is_loopback else '0.0.0.0'

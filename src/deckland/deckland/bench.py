@@ -346,16 +346,16 @@ def _fmt_target(t: dict) -> str:
 # --- the MAVLink tap (its own process) -------------------------------------------------------
 
 def tap_main(argv: Sequence[str]) -> int:
-    """``LISTEN_PORT SIM_PORT OUT_FILE``: relay UDP between the bridge and the simulator on
-    127.0.0.1, record ``arrival_s time_boot_ms`` of each SET_ATTITUDE_TARGET; write them to
-    OUT_FILE on SIGINT/SIGTERM."""
-    listen_port, sim_port, out_path = int(argv[0]), int(argv[1]), argv[2]
+    """``LISTEN_FD SIM_PORT OUT_FILE``: relay UDP between the bridge and the simulator on
+    127.0.0.1 (listening on the inherited, already bound socket LISTEN_FD), record
+    ``arrival_s time_boot_ms`` of each SET_ATTITUDE_TARGET; write them to OUT_FILE on
+    SIGINT/SIGTERM."""
+    listen_fd, sim_port, out_path = int(argv[0]), int(argv[1]), argv[2]
     sim_addr = ('127.0.0.1', sim_port)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(('127.0.0.1', listen_port))
+    sock = socket.socket(fileno=listen_fd)
     sock.settimeout(0.1)
     bridge_addr = None
     records: list[tuple[float, int]] = []
@@ -504,21 +504,32 @@ def _url_port(url: str) -> int:
 
 def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, dict]:
     """Start the graph with the tap, measure for ``args.duration`` s, return (status, report)."""
+    from deckland.up import UdpReservations
+
+    udp = UdpReservations()
+    try:
+        return _run_latency_bench(args, udp, out)
+    finally:
+        udp.close()
+
+
+def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
     from deckland.orchestrator import Orchestrator, load_graph
-    from deckland.up import (
-        MissionMonitor,
-        default_graph_path,
-        free_udp_port,
-        graph_substitutions,
-    )
+    from deckland.up import MissionMonitor, default_graph_path, graph_substitutions
 
     subs = graph_substitutions(types.SimpleNamespace(
         scenario=args.scenario, seed=args.seed, hardware=False, mavlink=None, pixy_port=None,
-        area=(0.0, 0.0)))
+        area=(0.0, 0.0)), udp)
     px4 = _px4_for_bench(args)
     # bridge -> tap -> simulator; with PX4 the tap sits on PX4's onboard link (it listens
     # where PX4 sends, 14540 + i, and relays to PX4's 14580 + i)
-    tap_port = free_udp_port() if px4 is None else px4.ports['onboard_remote']
+    try:
+        tap_port, tap_fd = (udp.bind() if px4 is None
+                            else udp.bind(px4.ports['onboard_remote']))
+    except OSError:
+        if px4 is not None:
+            px4.stop()
+        raise
     sim_port = (_url_port(subs['sim_mavlink_url']) if px4 is None
                 else px4.ports['onboard_local'])
     subs['mavlink_url'] = f'udpout:127.0.0.1:{tap_port}'
@@ -534,12 +545,15 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
     clk_tck = os.sysconf('SC_CLK_TCK')
     status, report = 1, {}
     with open(log_path, 'w') as log:
-        orch = Orchestrator(graph['nodes'], out=log, stop_timeout_s=5.0)
+        nodes = graph['nodes']
+        if getattr(args, 'composed', False):
+            from deckland.composed import compose
+            nodes = compose(nodes)
+        orch = Orchestrator(nodes, out=log, stop_timeout_s=5.0, pass_fds=udp.fds())
         tap = subprocess.Popen(
             [sys.executable, '-c', 'import sys; from deckland.bench import tap_main; '
-             'sys.exit(tap_main(sys.argv[1:]))', str(tap_port),
-             str(sim_port), tap_out],
-            stdin=subprocess.DEVNULL, start_new_session=True)
+             'sys.exit(tap_main(sys.argv[1:]))', str(tap_fd), str(sim_port), tap_out],
+            stdin=subprocess.DEVNULL, start_new_session=True, pass_fds=(tap_fd,))
         monitor = None
         view = client = None
         try:
@@ -550,12 +564,20 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
                 client = ViewClient(port).start()
             monitor = MissionMonitor(graph.get('wait_for_topics', []))
             recorder = StreamRecorder(monitor.node)
-            silent = _px4_up(px4, monitor, args, out) if px4 is not None else []
-            silent = silent or monitor.wait_flowing(args.startup_timeout)
-            if silent:
-                out.write(f'topics not flowing after {args.startup_timeout:.0f} s: {silent} '
-                          f'(log: {log_path})\n')
+            t_start = time.monotonic()
+            not_ready = orch.wait_ready(args.startup_timeout)
+            silent: list[str] = []
+            if not not_ready:
+                silent = _px4_up(px4, monitor, args, out) if px4 is not None else []
+                silent = silent or monitor.wait_flowing(
+                    args.startup_timeout - (time.monotonic() - t_start) if px4 is None
+                    else args.startup_timeout)
+            if not_ready or silent:
+                out.write(f'start-up failed after {time.monotonic() - t_start:.0f} s: not '
+                          f'ready {not_ready}, silent topics {silent}, device problems '
+                          f'{orch.device_problems()} (log: {log_path})\n')
                 return 3, {}
+            startup_s = time.monotonic() - t_start
             pids = {p.spec.name: p.proc.pid for p in orch.procs}
             if view is not None:
                 time.sleep(2.0)     # the view discovers the topics (1 s period), the client
@@ -602,6 +624,7 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
             if monitor is not None:
                 monitor.close()
             orch.stop()
+            orch.close()
             if px4 is not None:
                 px4.stop()
             tap.send_signal(signal.SIGTERM)
@@ -620,10 +643,12 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
             'cpu_percent': view_cpu, 'client_channels': len(client.channels) if client else 0,
             'client_messages_per_s': round((msgs1 - msgs0) / wall, 1) if wall > 0 else None},
         'scenario': args.scenario, 'seed': args.seed,
+        'composed': bool(getattr(args, 'composed', False)),
         'instrumentation_cpu_percent': {'mavlink_tap': cpu_percent(tap0, tap1, wall, clk_tck)},
         'landing': None if outcome is None else {
             k: outcome.get(k) for k in ('success', 'reason', 'time_to_land_s')},
         'crashed_nodes': [{'node': n, 'status': c} for n, c in crashed],
+        'startup_s': round(startup_s, 3),
         'autopilot': getattr(args, 'autopilot', 'emulator'),
         'autopilot_cpu_percent': px4_cpu,
         'log': log_path,
@@ -631,6 +656,11 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
                     'loadavg_1min_after': os.getloadavg()[0]},
     }
     report = build_report(chain, jitter, gaps, cpu, float(subs['pixy_latency_s']), wall, extra)
+    # CPU per setpoint: comparable between runs that streamed at different rates (overload)
+    n_sp = report['counts'].get('setpoints', 0)
+    report['setpoints_per_s'] = n_sp / wall if wall > 0 else 0.0
+    report['cpu_ms_per_setpoint_without_sim'] = (
+        report['cpu_percent']['total_without_sim'] * 10.0 * wall / n_sp if n_sp else None)
     ok = report['samples'] > 0 and not crashed
     status = 0 if ok else 1
     return status, report
@@ -712,6 +742,8 @@ def register(sub) -> None:
     lat.add_argument('--graph', help='graph YAML (default: the packaged graph)')
     lat.add_argument('--log', help='node output log (default: a file in a temp directory)')
     lat.add_argument('--startup-timeout', type=float, default=40.0)
+    lat.add_argument('--composed', action='store_true',
+                     help='the stack nodes in one process (as deckland up --composed)')
     from deckland.sitl import SITL_AUTOPILOTS
     lat.add_argument('--autopilot', choices=('emulator', *SITL_AUTOPILOTS), default='emulator',
                      help='a firmware (e.g. px4-sitl) flies the simulated vehicle (it takes '

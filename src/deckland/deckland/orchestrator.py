@@ -11,6 +11,10 @@ after every respawn, capped at :data:`MAX_BACKOFF_S`) at most ``respawn_limit`` 
 :meth:`Orchestrator.kill` is fault injection (``node_kill``): the node is SIGKILLed and held
 down (never respawned) until :meth:`Orchestrator.release`. :meth:`Orchestrator.stop` sends
 SIGINT, then SIGTERM, then SIGKILL, so every child is gone within ``stop_timeout_s``.
+Readiness is explicit: every child gets the write end of one pipe (``$DECKLAND_READY_FD``) and
+writes a JSON line once its node is built (:func:`deckland_common.ros_node.notify_ready`);
+:meth:`Orchestrator.wait_ready` waits on those lines. ``pass_fds`` (sockets bound by the caller
+before the start, so their ports cannot be taken in between) are inherited by every child.
 
 Parameters are data, never code: names are checked against ROS name rules, the package and
 module against Python's dotted-identifier rule (they are the only text placed into the child's
@@ -21,6 +25,7 @@ as separate argv entries without a shell.
 from __future__ import annotations
 
 import collections
+from collections.abc import Iterable
 import contextlib
 from dataclasses import dataclass, field
 import math
@@ -33,6 +38,7 @@ import threading
 import time
 from typing import IO, Any
 
+from deckland_common.readiness import READY_FD_ENV, parse_ready_line
 import yaml
 
 #: Upper bound of the respawn back-off.
@@ -224,6 +230,11 @@ def describe_status(code: int) -> str:
     return f'exit status {code}'
 
 
+def members(spec: NodeSpec) -> list[str]:
+    """The ROS node names a process runs: its components when composed, else its name."""
+    return [c.name for c in getattr(spec, 'components', ())] or [spec.name]
+
+
 @dataclass(frozen=True, slots=True)
 class ExitEvent:
     """A child that ended by itself or by fault injection (not by :meth:`Orchestrator.stop`)."""
@@ -234,19 +245,23 @@ class ExitEvent:
     injected: bool           # killed on purpose (node_kill fault)
     action: str              # 'respawn' | 'gave up' | 'not respawned' | 'held'
     log_tail: tuple[str, ...]
+    nodes: tuple[str, ...] = ()   # the ROS nodes that went with it (composed: all of them)
 
     def as_dict(self) -> dict[str, Any]:
         return {'node': self.node, 'pid': self.pid, 'status': self.status,
                 'description': describe_status(self.status), 'injected': self.injected,
-                'action': self.action, 'log_tail': list(self.log_tail)}
+                'action': self.action, 'log_tail': list(self.log_tail),
+                'nodes': list(self.nodes or (self.node,))}
 
 
 class ManagedProcess:
     """One child process: prefixed output, the tail of its log, respawn bookkeeping."""
 
     def __init__(self, spec: NodeSpec, out: IO[str], env: dict[str, str],
-                 out_lock: threading.Lock, tail_lines: int = 15):
+                 out_lock: threading.Lock, tail_lines: int = 15,
+                 pass_fds: tuple[int, ...] = ()):
         self.spec = spec
+        self.pass_fds = pass_fds
         self.out = out
         self.env = env
         self.proc: subprocess.Popen | None = None
@@ -264,7 +279,7 @@ class ManagedProcess:
         self.proc = subprocess.Popen(
             self.spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL, env=self.env, text=True, bufsize=1, errors='replace',
-            start_new_session=True)
+            start_new_session=True, pass_fds=self.pass_fds)
         self.pids.append(self.proc.pid)
         self.respawn_at = None
         self._reader = threading.Thread(target=self._pump, args=(self.proc,), daemon=True,
@@ -306,10 +321,11 @@ class Orchestrator:
 
     def __init__(self, nodes: list[NodeSpec], out: IO[str] = sys.stdout,
                  env: dict[str, str] | None = None, stop_timeout_s: float = 5.0,
-                 tail_lines: int = 15, clock=time.monotonic):
+                 tail_lines: int = 15, clock=time.monotonic, pass_fds: Iterable[int] = ()):
         if not stop_timeout_s > 0:
             raise ValueError(f'stop_timeout_s must be > 0, got {stop_timeout_s!r}')
-        names = [n.name for n in nodes]
+        names = [n.name for n in nodes] + [m for n in nodes for m in members(n)
+                                            if m != n.name]
         if len(set(names)) != len(names):
             raise ValueError(f'node names must be unique, got {names}')
         self.out = out
@@ -318,9 +334,19 @@ class Orchestrator:
         self.stop_timeout_s = stop_timeout_s
         self.clock = clock
         self._out_lock = threading.Lock()
-        self.procs = [ManagedProcess(n, out, self.env, self._out_lock, tail_lines)
+        self._ready_r, self._ready_w = os.pipe()
+        self.env[READY_FD_ENV] = str(self._ready_w)
+        fds = tuple(sorted({*pass_fds, self._ready_w}))
+        self.procs = [ManagedProcess(n, out, self.env, self._out_lock, tail_lines, fds)
                       for n in nodes]
-        self.by_name = {p.spec.name: p for p in self.procs}
+        #: node name -> {'pid', 'problem'} of its latest readiness line (respawns replace it)
+        self.ready: dict[str, dict[str, Any]] = {}
+        self._ready_cond = threading.Condition()
+        self._ready_thread = threading.Thread(target=self._read_ready, daemon=True,
+                                              name='ready-pipe')
+        self._ready_thread.start()
+        #: process and ROS node names -> their process (composed nodes share one)
+        self.by_name = {name: p for p in self.procs for name in {p.spec.name, *members(p.spec)}}
         self.exits: list[ExitEvent] = []
         self.stopping = False
 
@@ -330,6 +356,44 @@ class Orchestrator:
         for p in self.procs:
             p.start()
             self.log(f'started {p.spec.name} (pid {p.proc.pid})')
+
+    def _read_ready(self) -> None:
+        """Collect the readiness lines (a line is one atomic pipe write, < PIPE_BUF)."""
+        with os.fdopen(self._ready_r, 'r', errors='replace') as fh:
+            for line in fh:
+                msg = parse_ready_line(line)
+                if msg is None or msg['node'] not in self.by_name:
+                    continue
+                with self._ready_cond:
+                    self.ready[msg['node']] = {'pid': msg['pid'], 'problem': msg['problem']}
+                    self._ready_cond.notify_all()
+                if msg['problem']:
+                    self.log(f"{msg['node']} is up without its device: {msg['problem']}")
+
+    def is_ready(self, name: str) -> bool:
+        """The running process of ``name`` has reported ready (a respawn must report again)."""
+        p = self.by_name[name]
+        info = self.ready.get(name)
+        return info is not None and p.alive() and info['pid'] in p.pids[-1:]
+
+    def wait_ready(self, timeout_s: float, abort=None) -> list[str]:
+        """Wait until every node has reported ready; return those that have not.
+
+        ``abort()`` (optional) is polled at least every 0.1 s and ends the wait early.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._ready_cond:
+            while True:
+                missing = [m for p in self.procs for m in members(p.spec)
+                           if not self.is_ready(m)]
+                left = deadline - time.monotonic()
+                if not missing or left <= 0 or (abort is not None and abort()):
+                    return missing
+                self._ready_cond.wait(min(0.1, left))
+
+    def device_problems(self) -> dict[str, str]:
+        """``node -> problem`` of the nodes that came up without their device."""
+        return {n: r['problem'] for n, r in self.ready.items() if r['problem']}
 
     def log(self, text: str) -> None:
         with self._out_lock:
@@ -380,7 +444,7 @@ class Orchestrator:
                     delay = min(MAX_BACKOFF_S, p.spec.respawn_delay_s * 2.0 ** p.respawns)
                     p.respawn_at = now + delay
                 event = ExitEvent(p.spec.name, p.proc.pid, code, injected, action,
-                                  tuple(p.tail))
+                                  tuple(p.tail), tuple(members(p.spec)))
                 self.exits.append(event)
                 new.append(event)
                 self._report(event, p)
@@ -395,6 +459,8 @@ class Orchestrator:
     def _report(self, e: ExitEvent, p: ManagedProcess) -> None:
         what = 'was killed (fault injection)' if e.injected else 'died'
         self.log(f'{e.node} (pid {e.pid}) {what}: {describe_status(e.status)}')
+        if e.nodes and e.nodes != (e.node,):
+            self.log(f'{e.node}: composed nodes lost with it: {", ".join(e.nodes)}')
         if not e.injected:
             for line in e.log_tail[-10:]:
                 self.log(f'  {e.node} | {line}')
@@ -416,8 +482,9 @@ class Orchestrator:
         if not p.alive():
             return False
         p.kill_pending = True
+        where = name if p.spec.name == name else f'{name} (composed in {p.spec.name})'
         self.log(f'fault injection: {describe_status(-sig).replace("killed by", "sending")} '
-                 f'to {name} (pid {p.proc.pid})')
+                 f'to {where} (pid {p.proc.pid})')
         p.signal(sig)
         return True
 
@@ -460,3 +527,9 @@ class Orchestrator:
                     os.killpg(p.proc.pid, signal.SIGKILL)
             p.join_output(0.3)
         return time.monotonic() - start
+
+    def close(self) -> None:
+        """Release the readiness pipe (after :meth:`stop`)."""
+        with contextlib.suppress(OSError):
+            os.close(self._ready_w)   # the reader sees EOF once no child holds it either
+        self._ready_thread.join(timeout=1.0)

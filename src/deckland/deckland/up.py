@@ -34,7 +34,7 @@ import threading
 import time
 from typing import Any
 
-from deckland.orchestrator import Orchestrator, load_graph
+from deckland.orchestrator import Orchestrator, describe_status, load_graph, members
 
 EXIT_CODES = {
     0: 'landed (simulation: on the deck, no crash; hardware: the planner reached LANDED)',
@@ -51,9 +51,40 @@ PRE_TRIGGER_S = 1.0
 
 
 def free_udp_port() -> int:
+    """A loopback UDP port free *now*. Racy: until someone binds it, any process may take it
+    (an ephemeral bind, or a DDS participant's well-known port: ROS domains above ~100 put
+    those inside the ephemeral range). Only for a binder we cannot hand a socket to; the
+    graph's own sockets are :class:`UdpReservations`."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(('127.0.0.1', 0))
         return s.getsockname()[1]
+
+
+class UdpReservations:
+    """Loopback UDP sockets bound before the graph starts and handed to the nodes by fd.
+
+    The node that listens (pixy_driver, the simulator's MAVLink ``udpin``, the bench tap)
+    inherits the already-bound socket (``udp_fd`` / ``mavlink_fd``) instead of binding a port
+    picked earlier, so no other process can take the port in between; the orchestrator keeps
+    its copy until the end, so a respawned node gets the same port back.
+    """
+
+    def __init__(self) -> None:
+        self.sockets: list[socket.socket] = []
+
+    def bind(self, port: int = 0) -> tuple[int, int]:
+        """A new socket on 127.0.0.1 (``port`` 0: the OS picks one): ``(port, fd)``."""
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(('127.0.0.1', port))
+        self.sockets.append(sock)
+        return sock.getsockname()[1], sock.fileno()
+
+    def fds(self) -> tuple[int, ...]:
+        return tuple(s.fileno() for s in self.sockets if s.fileno() >= 0)
+
+    def close(self) -> None:
+        for sock in self.sockets:
+            sock.close()
 
 
 def default_graph_path() -> str:
@@ -206,17 +237,19 @@ def vehicle_of(args, scenario) -> Any:
                                  for k, v in given.items()})
 
 
-def graph_substitutions(args) -> dict[str, Any]:
+def graph_substitutions(args, udp: UdpReservations) -> dict[str, Any]:
     """The graph YAML's ``{placeholder}`` values for ``args`` (any object with ``scenario``,
-    ``seed``, ``hardware``, ``mavlink``, ``pixy_port`` and ``area``): fresh loopback UDP ports,
-    the scenario's camera latency, landing area and vehicle (simulation) or the given ones
-    (hardware, :func:`vehicle_of`). Shared by ``deckland up`` and ``deckland bench``."""
+    ``seed``, ``hardware``, ``mavlink``, ``pixy_port`` and ``area``): loopback UDP sockets
+    bound now in ``udp`` (simulation; their fds go to the listening nodes), the scenario's
+    camera latency, landing area and vehicle (simulation) or the given ones (hardware,
+    :func:`vehicle_of`). Shared by ``deckland up`` and ``deckland bench``."""
     from deck_simulator.scenario import load_scenario
 
     hardware = bool(args.hardware)
     scenario = None if hardware else load_scenario(args.scenario)
     vehicle = vehicle_of(args, scenario)
-    mav_port, pixy_port = free_udp_port(), free_udp_port()
+    (mav_port, mav_fd), (pixy_port, pixy_fd) = ((0, -1), (0, -1)) if hardware else (
+        udp.bind(), udp.bind())
     # the bridge enters OFFBOARD only with a safe offboard-loss action: Land or Hold, and
     # Return where the scenario deliberately configures it (a return to the OFFBOARD point)
     returns = scenario is not None and scenario.faults and any(
@@ -228,6 +261,8 @@ def graph_substitutions(args) -> dict[str, Any]:
         'scenario': args.scenario, 'seed': args.seed,
         'mavlink_url': args.mavlink or f'udpout:127.0.0.1:{mav_port}',
         'sim_mavlink_url': f'udpin:127.0.0.1:{mav_port}',
+        'sim_mavlink_fd': mav_fd,
+        'pixy_udp_fd': pixy_fd,
         'pixy_transport': 'serial' if hardware else 'udp',
         'pixy_port': args.pixy_port or '/dev/ttyACM0',
         'pixy_udp_port': pixy_port,
@@ -312,10 +347,15 @@ def summary_lines(report: dict[str, Any], code: int, record: str | None) -> list
     for k in report.get('injected_faults', []):
         lines.append(f'fault injected    node_kill {k["node"]} at {_fmt(k["at_s"], "s", 1)} '
                      f'after the trigger')
+    for node, problem in report.get('device_problems', {}).items():
+        lines.append(f'device problem    {node}: {problem}')
     for c in report.get('crashed_nodes', []):
         lines.append(f'node exited       {c["node"]}: {c["description"]} ({c["action"]})')
-    if record:
-        bag = report.get('bag') or {}
+    bag = report.get('bag') or {}
+    if record and bag.get('not_started'):
+        lines.append(f'bag               not started: {bag["not_started"]}')
+        lines.append(f'report            {pathlib.Path(record) / "report.json"}')
+    elif record:
         lines.append(f'bag               {record} ({bag.get("messages", "?")} messages, '
                      f'{bag.get("topics", "?")} topics)')
         lines.append(f'report            {pathlib.Path(record) / "report.json"}')
@@ -347,13 +387,27 @@ def _cmd_up(args: argparse.Namespace) -> int:
                     "(in simulation the scenario's vehicle is flown)")
     if not (args.timeout > 0 and args.startup_timeout > 0):
         return fail('--timeout and --startup-timeout must be > 0')
+    udp = UdpReservations()
     try:
         scenario = None if hardware else load_scenario(args.scenario)
-        subs = graph_substitutions(args)   # a bad --mass-kg etc.: ValueError naming it
+        subs = graph_substitutions(args, udp)   # a bad --mass-kg etc.: ValueError naming it
         graph = load_graph(args.graph or default_graph_path(), subs, hardware)
         record = prepare_record_dir(args.record) if args.record else None
     except (ValueError, OSError) as exc:
+        udp.close()
         return fail(str(exc))
+    try:
+        return _run_up(args, hardware, scenario, graph, record, udp, backend)
+    finally:
+        udp.close()
+
+
+def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str, Any],
+            record: pathlib.Path | None, udp: UdpReservations, backend: Any) -> int:
+    def fail(msg: str) -> int:
+        print(f'deckland up: {msg}', file=sys.stderr)
+        return 2
+
     nodes = graph['nodes']
     px4 = None
     if backend is not None:   # a firmware in the loop (deckland.sitl.SITL_AUTOPILOTS)
@@ -370,7 +424,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
     if args.params:
         for spec in nodes:
             spec.params_file = args.params
-    orch = Orchestrator(nodes, stop_timeout_s=5.0)
+    if getattr(args, 'composed', False):
+        from deckland.composed import compose
+        nodes = compose(nodes)
+    orch = Orchestrator(nodes, stop_timeout_s=5.0, pass_fds=udp.fds())
 
     stop_requested = threading.Event()
     received: list[int] = []
@@ -406,25 +463,37 @@ def _cmd_up(args: argparse.Namespace) -> int:
             return stop_requested.is_set() or any(
                 e.action in ('not respawned', 'gave up') for e in orch.exits)
 
-        if px4 is not None:
-            ok, msg = px4.wait_up(args.startup_timeout, abort=startup_abort)
-            if not ok:
-                report = {'success': False, 'reason': f'start-up failed: {msg}'}
-                result_code = 3
-                orch.log(report['reason'])
-                raise _EndRunError
-            orch.log(f'{backend.name} up after {px4.times["up_s"]:.1f} s')
-        # on the ground the planner disables the thrust: the command topics flow once in
-        # the air (PX4's take-off, below)
-        silent = monitor.wait_flowing(args.startup_timeout, abort=startup_abort,
-                                      skip=() if px4 is None else px4.GROUND_SILENT)
+        t_start = time.monotonic()
+        not_ready = orch.wait_ready(args.startup_timeout, abort=startup_abort)
+        silent: list[str] = []
+        if not not_ready and not stop_requested.is_set():
+            t_flow = t_start
+            if px4 is not None:
+                ok, msg = px4.wait_up(args.startup_timeout, abort=startup_abort)
+                if not ok:
+                    report = {'success': False, 'reason': f'start-up failed: {msg}'}
+                    result_code = 3
+                    orch.log(report['reason'])
+                    raise _EndRunError
+                orch.log(f'{backend.name} up after {px4.times["up_s"]:.1f} s')
+                t_flow = time.monotonic()   # PX4's boot is not the topics' time
+            # on the ground the planner disables the thrust: the command topics flow once in
+            # the air (PX4's take-off, below)
+            silent = monitor.wait_flowing(
+                args.startup_timeout - (time.monotonic() - t_flow), abort=startup_abort,
+                skip=() if px4 is None else px4.GROUND_SILENT)
         if stop_requested.is_set():
             raise _EndRunError
-        if silent or orch.crashed:
-            dead = ', '.join(f'{n} ({c})' for n, c in orch.crashed)
-            orch.log(f'start-up failed: silent topics {silent}' + (f'; exited: {dead}'
-                                                                    if dead else ''))
-            report = {'success': False, 'reason': 'start-up failed', 'silent_topics': silent}
+        if not_ready or silent or orch.crashed:
+            dead = ', '.join(f'{n} ({describe_status(c)})' for n, c in orch.crashed)
+            problems = orch.device_problems()
+            orch.log('start-up failed: ' + '; '.join(x for x in (
+                f'not ready {not_ready}' if not_ready else '',
+                f'silent topics {silent}' if silent else '',
+                f'exited: {dead}' if dead else '',
+                f'device problems {problems}' if problems else '') if x))
+            report = {'success': False, 'reason': 'start-up failed', 'silent_topics': silent,
+                      'not_ready': not_ready}
             result_code = 3
             raise _EndRunError
         wait_topics = graph.get('wait_for_topics', [])
@@ -441,7 +510,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
                 result_code = 3
                 orch.log(report['reason'])
                 raise _EndRunError
-        orch.log('all topics flowing')
+        orch.log(f'all nodes ready, all topics flowing after {time.monotonic() - t_start:.2f} s')
         monitor.stop_counting()
         if record is not None and recorder is None:
             recorder = _start_recorder(record, monitor, wait_topics, orch)
@@ -471,7 +540,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
                 f = pending.pop(0)
                 killed = orch.kill(f.node)
                 injected.append({'type': 'node_kill', 'node': f.node, 'at_s': round(now, 3),
-                                 'planned_s': f.start_s, 'killed': killed})
+                                 'planned_s': f.start_s, 'killed': killed,
+                                 'nodes_lost': members(orch.by_name[f.node].spec)})
                 if math.isfinite(f.end_s):
                     releases.append((f.end_s, f.node))
             for item in [r for r in releases if now >= r[0]]:
@@ -513,6 +583,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
             orch.log(f'interrupted by {signal.Signals(sig).name}; stopping')
         took = orch.stop()
         orch.check()
+        orch.close()
         orch.log(f'stopped all nodes in {took:.2f} s')
         px4_report = None
         if px4 is not None:
@@ -541,8 +612,11 @@ def _cmd_up(args: argparse.Namespace) -> int:
                      or m['t_s'] <= t_outcome - t_trigger]
         for s, h in old.items():
             signal.signal(s, h)
-        report = _finish_report(report, args, hardware, orch, injected, modes, record,
-                                result_code)
+        report = _finish_report(report, args, hardware, orch, injected, modes,
+                                record if recorder is not None else None, result_code)
+        if record is not None and recorder is None:
+            report['bag'] = {'path': str(record), 'messages': 0,
+                             'not_started': 'the run ended before recording began'}
         if px4_report is not None:
             report['autopilot'] = backend.name
             report[backend.report_key] = px4_report
@@ -575,7 +649,9 @@ def _start_px4(px4, nodes, orch: Orchestrator) -> str:
     except (SitlStartError, OSError) as exc:
         orch.log(f'PX4 did not start: {exc}')
         return f'PX4 did not start: {exc}'
-    px4.configure_graph(nodes)
+    # composed: the simulator and the bridge are components (their commands are built at
+    # start, so their parameters can still change here)
+    px4.configure_graph([c for n in nodes for c in (getattr(n, 'components', None) or [n])])
     orch.log(px4.describe())
     return ''
 
@@ -620,6 +696,7 @@ def _finish_report(report: dict[str, Any], args, hardware: bool, orch: Orchestra
         report.setdefault('scenario', args.scenario)
         report.setdefault('seed', args.seed)
     report['hardware'] = hardware
+    report['composed'] = bool(getattr(args, 'composed', False))
     if 'crash' in report:
         report['safe'] = not report['crash']
     # the autopilot's offboard-loss action: the first mode it switched to out of OFFBOARD
@@ -629,6 +706,8 @@ def _finish_report(report: dict[str, Any], args, hardware: bool, orch: Orchestra
         report['failsafe'] = left[0]
     report['autopilot_modes'] = modes
     report['injected_faults'] = injected
+    if orch.device_problems():
+        report['device_problems'] = orch.device_problems()
     crashed = [e.as_dict() for e in orch.exits if not e.injected]
     if crashed:
         report['crashed_nodes'] = crashed
@@ -663,6 +742,9 @@ def register(sub) -> None:
                    help='thrust-curve expo e, PX4 THR_MDL_FAC (hardware; default 0)')
     p.add_argument('--params', help='ROS 2 parameters YAML passed to every node')
     p.add_argument('--graph', help='graph YAML (default: the packaged graph)')
+    p.add_argument('--composed', action='store_true',
+                   help='run the stack nodes in one process on one executor (the simulator '
+                   'stays apart); default: one process per node')
     p.add_argument('--record', help='record a bag (and report.json) into this directory')
     p.add_argument('--foxglove', type=int, nargs='?', const=8765, default=None, metavar='PORT',
                    help='serve a live Foxglove view on this WebSocket port (default 8765)')

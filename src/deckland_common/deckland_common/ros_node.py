@@ -10,7 +10,10 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 import math
 import os
+import signal
 import sys
+import threading
+import time
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -29,6 +32,7 @@ from rclpy.qos import (
 
 from deckland_common.checks import InputGuard
 from deckland_common.params import ParameterError, ParamSpec, validate
+from deckland_common.readiness import write_ready
 
 #: High-rate sensor streams (camera blocks, lidar, IMU): best effort, keep last 5.
 SENSOR_QOS = qos_profile_sensor_data
@@ -78,6 +82,10 @@ def all_finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+#: shortest interval between two log lines of one rejection / withholding reason (s)
+LOG_THROTTLE_S = 2.0
+
+
 class GuardedNode:
     """Mixin for a node whose pure loop core counts what it rejects and withholds.
 
@@ -105,13 +113,29 @@ class GuardedNode:
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _log_reject(self, reason: str, what: str) -> None:
-        self.get_logger().warn(
-            f'rejected {what}: {reason} ({self.rejected.get(reason, 0)} so far)',
-            throttle_duration_sec=2.0)
+        if self._log_due(f'reject:{reason}'):
+            self.get_logger().warn(
+                f'rejected {what}: {reason} ({self.rejected.get(reason, 0)} so far)')
 
     def _log_withheld(self, reason: str) -> None:
-        self.get_logger().warn(f'{self._withheld_text}: {reason}',
-                               throttle_duration_sec=2.0)
+        if self._log_due(f'withheld:{reason}'):
+            self.get_logger().warn(f'{self._withheld_text}: {reason}')
+
+    def _log_due(self, key: str) -> bool:
+        """At most one line per ``key`` every :data:`LOG_THROTTLE_S` (wall clock).
+
+        Checked here, not with rclpy's ``throttle_duration_sec``: rclpy identifies the call
+        site with ``inspect`` (stat calls on the source files) on *every* call, throttled or
+        not, ~2 ms each on a loaded machine; a node rejecting stale inputs under overload
+        then spent a quarter of its time logging nothing (cProfile of dob_altitude).
+        """
+        times = self.__dict__.setdefault('_log_times', {})
+        now = time.monotonic()
+        last = times.get(key)
+        if last is not None and now - last < LOG_THROTTLE_S:
+            return False
+        times[key] = now
+        return True
 
     def _reject(self, reason: str, what: str) -> None:
         """Count and log a message the node refuses before its core sees it."""
@@ -137,9 +161,12 @@ class GuardedNode:
 #: ``single`` (rclpy's SingleThreadedExecutor, the fallback).
 EXECUTOR_ENV = 'DECKLAND_EXECUTOR'
 EXECUTORS = ('events', 'single')
-#: Longest wait of one ``spin_once`` of the events executor (s); only bounds how fast a
-#: shutdown that did not wake the executor is noticed.
-SPIN_ONCE_TIMEOUT_S = 0.5
+#: Longest wait of one ``spin_once`` (s): bounds how long a SIGINT/SIGTERM waits to be seen
+#: (the Python handler runs when ``spin_once`` returns to the interpreter).
+SPIN_ONCE_TIMEOUT_S = 0.1
+#: Environment variable: a directory where :func:`spin_nodes` writes a cProfile of the
+#: executor thread's callbacks (``NODE.PID.prof``) when it returns (profiling only).
+PROFILE_ENV = 'DECKLAND_PROFILE_DIR'
 
 
 def executor_kind(environ: dict | None = None) -> str:
@@ -155,43 +182,94 @@ def executor_kind(environ: dict | None = None) -> str:
     return kind
 
 
-def spin(node: Node, kind: str = 'events') -> None:
-    """Spin ``node`` until its context shuts down.
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (installed only in the main thread).
+
+    The nodes run with rclpy's own handlers off (``SignalHandlerOptions.NO``): rclpy's shut
+    the context down from its signal thread while a callback may still be publishing
+    (``publisher's context is invalid``). Here a signal only asks the spin loop to end; the
+    executor is shut down first, then the nodes, then the context.
+    """
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def notify_ready(node: Node) -> None:
+    """Tell the orchestrator that ``node`` is built and spins next (:mod:`.readiness`).
+
+    ``problem`` is the node's ``device_problem()`` (a device it could not open), empty when
+    all is well. Without ``$DECKLAND_READY_FD`` (``ros2 run``, tests) nothing is written.
+    """
+    probe = getattr(node, 'device_problem', None)
+    write_ready(node.get_name(), str(probe()) if callable(probe) else '')
+
+
+def spin_nodes(nodes: list[Node], kind: str = 'events',
+               stop: threading.Event | None = None) -> None:
+    """Spin ``nodes`` (one context) on one executor until ``stop`` is set or the context ends.
 
     ``events``: ``rclpy.experimental.EventsExecutor`` (C++ event queue, no per-wake wait-set
     rebuild: about a third of the CPU of the SingleThreadedExecutor for the same callbacks).
     Its blocking ``spin()`` never runs timers in this rclpy (7.1.5: the timer thread starves
     while ``spin()`` blocks; checked with a 100 Hz timer that never fired), so it is driven by
     ``spin_once`` in a loop, which runs timers, subscriptions, services and accepts
-    publications from other threads. ``single``: ``rclpy.spin`` (SingleThreadedExecutor).
+    publications from other threads. ``single``: rclpy's SingleThreadedExecutor, same loop.
+    The executor is shut down before returning, so no callback runs once this returns.
     """
+    from rclpy.executors import SingleThreadedExecutor
+    context = nodes[0].context
     if kind == 'single':
-        rclpy.spin(node)
-        return
-    from rclpy.experimental import EventsExecutor
-    context = node.context
-    executor = EventsExecutor(context=context)
-    executor.add_node(node)
+        executor: Any = SingleThreadedExecutor(context=context)
+    else:
+        from rclpy.experimental import EventsExecutor
+        executor = EventsExecutor(context=context)
+    for node in nodes:
+        executor.add_node(node)
+    stop = stop or threading.Event()
+    profile_dir = os.environ.get(PROFILE_ENV, '')
+    profiler = None
+    if profile_dir:
+        import cProfile
+        profiler = cProfile.Profile(time.thread_time)   # CPU of this thread, not waits
+        profiler.enable()
     try:
-        while context.ok():
+        while context.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
     finally:
         executor.shutdown(timeout_sec=1.0)
+        if profiler is not None:
+            profiler.disable()
+            name = '+'.join(n.get_name() for n in nodes)
+            profiler.dump_stats(os.path.join(profile_dir, f'{name}.{os.getpid()}.prof'))
+
+
+def spin(node: Node, kind: str = 'events', stop: threading.Event | None = None) -> None:
+    """Spin one node: :func:`spin_nodes` with ``[node]``."""
+    spin_nodes([node], kind, stop)
 
 
 def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int:
-    """Standard Jazzy ``main()`` body: init, build, spin, clean shutdown.
+    """Standard Jazzy ``main()`` body: init, build, report ready, spin, clean shutdown.
 
-    The executor is :func:`spin`'s ``events`` unless ``$DECKLAND_EXECUTOR=single``. A
-    :class:`ParameterError` while building the node (or a bad ``$DECKLAND_EXECUTOR``) is
-    printed as a clear message and the process exits with status 2 (never a silent default).
+    SIGINT/SIGTERM end the spin (:func:`stop_on_signals`); then the node is destroyed (its
+    threads joined) and only then the context is shut down, so nothing publishes on a dead
+    context. The executor is :func:`spin_nodes`' ``events`` unless
+    ``$DECKLAND_EXECUTOR=single``. A :class:`ParameterError` while building the node (or a bad
+    ``$DECKLAND_EXECUTOR``) is printed as a clear message and the process exits with status 2.
     """
-    rclpy.init(args=args)
+    from rclpy.signals import SignalHandlerOptions
+
+    stop = stop_on_signals()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         kind = executor_kind()
         node = factory()
-        spin(node, kind)
+        notify_ready(node)
+        spin(node, kind, stop)
     except ParameterError as exc:
         print(f'[FATAL] {exc}', file=sys.stderr)
         return 2

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import ipaddress
 import math
+import os
 import socket
 import threading
 
@@ -51,6 +52,9 @@ PARAMS = [
     ParamSpec('udp_bind_address', '127.0.0.1', 'local address to bind (transport udp); '
               'loopback unless configured', _is_ip_literal, 'must be an IPv4/IPv6 literal'),
     in_range('udp_port', 14600, 0, 65535, 'local UDP port (0: the OS picks one)'),
+    in_range('udp_fd', -1, -1, 65535, 'an inherited UDP socket already bound (deckland up '
+             'binds it before starting the graph so the port cannot be taken meanwhile); '
+             '-1: bind udp_bind_address:udp_port here'),
     ParamSpec('udp_datagram_is_frame', True, 'UDP: each datagram holds exactly one frame, '
               'publish it at once (no one-frame latency)'),
     ParamSpec('frame_id', 'camera_optical', 'header.frame_id of pixy/blocks',
@@ -84,6 +88,17 @@ def frame_to_cloud(frame: PixyFrame, stamp_s: float, frame_id: str) -> PointClou
     return msg
 
 
+def _drain(sock: socket.socket) -> int:
+    """Discard every datagram waiting in ``sock``; returns how many."""
+    sock.setblocking(False)
+    n = 0
+    with contextlib.suppress(BlockingIOError, InterruptedError):
+        while True:
+            sock.recv(65536)
+            n += 1
+    return n
+
+
 class PixyDriverNode(Node):
     """Publishes ``pixy/blocks`` (PointCloud) and ``pixy/diagnostics`` (DiagnosticArray)."""
 
@@ -115,19 +130,35 @@ class PixyDriverNode(Node):
         self._pub = self.create_publisher(PointCloud, 'pixy/blocks', RELIABLE_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'pixy/diagnostics', RELIABLE_QOS)
         self._timer = self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics)
-        self._open()
+        if self._open():   # a failure is logged there, reported in diagnostics and readiness
+            self.get_logger().info(f'reading Pixy frames from {self._hardware_id}')
         self._thread = threading.Thread(target=self._run, name='pixy_reader', daemon=True)
         self._thread.start()
-        self.get_logger().info(f'reading Pixy frames from {self._hardware_id}')
 
     # ------------------------------------------------------------------ io
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def device_problem(self) -> str:
+        """Why the device is not open (empty when it is): readiness and diagnostics."""
+        if self._io is not None:
+            return ''
+        return f'cannot open {self._hardware_id}: {self._io_error}'
+
     def _open(self) -> bool:
         p = self._p
         try:
-            if p['transport'] == 'udp':
+            if p['transport'] == 'udp' and p['udp_fd'] >= 0:
+                sock = socket.socket(fileno=os.dup(p['udp_fd']))
+                if sock.type != socket.SOCK_DGRAM:
+                    sock.close()
+                    raise OSError(f"udp_fd {p['udp_fd']} is not a UDP socket")
+                _drain(sock)   # datagrams queued while no driver read them are stale
+                sock.settimeout(p['read_timeout_s'])
+                self.udp_port_bound = sock.getsockname()[1]
+                self._hardware_id = f"udp://{p['udp_bind_address']}:{self.udp_port_bound}"
+                self._io = sock
+            elif p['transport'] == 'udp':
                 family = (socket.AF_INET6 if ':' in p['udp_bind_address'] else socket.AF_INET)
                 sock = socket.socket(family, socket.SOCK_DGRAM)
                 try:
@@ -219,7 +250,7 @@ class PixyDriverNode(Node):
         status = DiagnosticStatus(name='pixy_driver: Pixy camera', hardware_id=self._hardware_id)
         if self._io is None:
             status.level = DiagnosticStatus.ERROR
-            status.message = f'port not open: {self._io_error}'
+            status.message = f'port not open: {self.device_problem()}'
         elif since > self._p['stale_timeout_s']:
             status.level = DiagnosticStatus.WARN
             status.message = f'no frame for {since:.1f} s'
