@@ -140,7 +140,7 @@ class ThrustCalibration:
 
     Tilt: ``thrust_n`` is the thrust magnitude along body z (the paper's u_z); PX4 offboard
     attitude control applies it as body thrust without tilt compensation. ArduPilot GUIDED_NOGPS
-    boosts it by 1/cos(tilt) unless ``ANGLE_BOOST = 0`` (the bridge checks that parameter).
+    boosts it by 1/cos(tilt) unless ``ATC_ANGLE_BOOST = 0`` (the bridge checks that parameter).
     """
 
     mass_kg: float = 2.71            # paper Table 2
@@ -419,12 +419,14 @@ PX4_AUTO_SUB_MODES = {1: 'READY', 2: 'TAKEOFF', 3: 'LOITER', 4: 'MISSION', 5: 'R
 #: PX4 ``COM_OBL_RC_ACT`` (offboard-loss action) values → names
 PX4_OFFBOARD_LOSS_ACTIONS = {0: 'position', 1: 'altitude', 2: 'manual', 3: 'return',
                              4: 'land', 5: 'hold', 6: 'terminate', 7: 'disarm'}
+#: ArduCopter 4.5 ``Mode::Number`` (mode.h): 28 TURTLE is new, 13 SPORT was removed in 4.5
+#: ("No such mode 13", measured on 4.5.6 SITL), 26 AUTOROTATE exists in helicopter builds only
 ARDUCOPTER_MODES = {0: 'STABILIZE', 1: 'ACRO', 2: 'ALT_HOLD', 3: 'AUTO', 4: 'GUIDED',
-                    5: 'LOITER', 6: 'RTL', 7: 'CIRCLE', 9: 'LAND', 11: 'DRIFT', 13: 'SPORT',
-                    14: 'FLIP', 15: 'AUTOTUNE', 16: 'POSHOLD', 17: 'BRAKE', 18: 'THROW',
-                    19: 'AVOID_ADSB', 20: 'GUIDED_NOGPS', 21: 'SMART_RTL', 22: 'FLOWHOLD',
-                    23: 'FOLLOW', 24: 'ZIGZAG', 25: 'SYSTEMID', 26: 'AUTOROTATE',
-                    27: 'AUTO_RTL'}
+                    5: 'LOITER', 6: 'RTL', 7: 'CIRCLE', 9: 'LAND', 11: 'DRIFT', 14: 'FLIP',
+                    15: 'AUTOTUNE', 16: 'POSHOLD', 17: 'BRAKE', 18: 'THROW', 19: 'AVOID_ADSB',
+                    20: 'GUIDED_NOGPS', 21: 'SMART_RTL', 22: 'FLOWHOLD', 23: 'FOLLOW',
+                    24: 'ZIGZAG', 25: 'SYSTEMID', 26: 'AUTOROTATE', 27: 'AUTO_RTL',
+                    28: 'TURTLE'}
 
 
 def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:

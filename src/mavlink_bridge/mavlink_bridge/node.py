@@ -1,8 +1,9 @@
 """ROS 2 adapter of the MAVLink bridge (thin: transport + message conversion only).
 
 Decisions live in :mod:`mavlink_bridge.core` and frame/unit conversions in
-:mod:`mavlink_bridge.conversions`; this module owns the pymavlink connection, a background
-reader thread, a 50 Hz housekeeping timer and the ROS publishers, subscribers and services.
+:mod:`mavlink_bridge.conversions`; this module owns the pymavlink connection (TCP through
+:class:`~mavlink_bridge.tcp.ReconnectingTcp`), a background reader thread, a 50 Hz
+housekeeping timer and the ROS publishers, subscribers and services.
 The core runs on ``time.monotonic()`` (link and input freshness are about the real transport);
 published headers carry the node clock (ROS time, sim time when ``use_sim_time``).
 """
@@ -54,8 +55,9 @@ from mavlink_bridge.conversions import (
     local_position_ned_to_enu,
     scaled_imu_to_flu,
 )
-from mavlink_bridge.core import BridgeCore, BridgeParams, LinkMonitorParams
+from mavlink_bridge.core import ARDUPILOT_STOP_MODES, BridgeCore, BridgeParams, LinkMonitorParams
 from mavlink_bridge.signing import load_signing_key, verify_signature_first
+from mavlink_bridge.tcp import ReconnectingTcp
 
 _load_signing_key = load_signing_key   # the earlier private name
 
@@ -110,6 +112,17 @@ PARAMS = [
            "else MPC_THR_HOVER; 'parameter' = hover_thrust_norm"),
     ParamSpec('trim_telemetry', True, 'ask the autopilot to stop every stream the bridge does '
               'not read (SET_MESSAGE_INTERVAL -1)'),
+    ParamSpec('use_highres_imu', True, 'vehicle/imu from HIGHRES_IMU (PX4); False = SCALED_IMU. '
+              'An autopilot that refuses HIGHRES_IMU (ArduPilot: DENIED) gets SCALED_IMU '
+              'anyway'),
+    one_of('ardupilot_stop_action', 'land', tuple(ARDUPILOT_STOP_MODES),
+           'ArduPilot: what the bridge commands when its setpoints stop while ArduPilot flies '
+           "them ('land' = LAND; 'loiter' = LOITER, needs a position estimate, else LAND; "
+           "'none' = GUIDED_NOGPS's own timeout: level, hold altitude, indefinitely)"),
+    positive('stop_after_s', 0.3, 'ArduPilot: setpoint gap after which the stop action is '
+             'commanded'),
+    positive('disarm_timeout_s', 15.0, 'ArduPilot: a disarm refused while its land detector '
+             'catches up (FAILED) is retried this long'),
     ParamSpec('signing_key_file', '', 'MAVLink 2 signing key file (32 raw bytes or 64 hex '
               'characters); empty = unsigned'),
     ParamSpec('landing_target_output', False,
@@ -150,6 +163,10 @@ class MavlinkBridgeNode(Node):
                 max_offboard_loss_timeout_s=cfg['max_offboard_loss_timeout_s'],
                 hover_thrust_source=cfg['hover_thrust_source'],
                 trim_telemetry=cfg['trim_telemetry'],
+                use_highres_imu=bool(cfg['use_highres_imu']),
+                ardupilot_stop_action=cfg['ardupilot_stop_action'],
+                stop_after_s=cfg['stop_after_s'], disarm_timeout_s=cfg['disarm_timeout_s'],
+                system_id=cfg['system_id'],
                 target_component=cfg['target_component'], thrust=calib,
                 link_monitor=LinkMonitorParams(
                     period_s=cfg['timesync_period_s'], max_latency_s=cfg['max_link_latency_s'],
@@ -159,9 +176,15 @@ class MavlinkBridgeNode(Node):
         self._lock = threading.Lock()
         self._t0 = time.monotonic()
         mavutil.set_dialect('common')  # MAVLink 2 common (MAVLINK20 set above)
-        self.conn = mavutil.mavlink_connection(
-            cfg['connection'], baud=cfg['baud'], source_system=cfg['system_id'],
-            source_component=cfg['component_id'], dialect='common')
+        dev = cfg['connection'].strip()
+        if dev.startswith('tcp:'):
+            # survives the peer going away: no busy loop, reconnects (issue 17, finding 7)
+            self.conn = ReconnectingTcp(dev[4:], source_system=cfg['system_id'],
+                                        source_component=cfg['component_id'])
+        else:
+            self.conn = mavutil.mavlink_connection(
+                dev, baud=cfg['baud'], source_system=cfg['system_id'],
+                source_component=cfg['component_id'], dialect='common')
         self.signed = bool(cfg['signing_key_file'])
         if self.signed:
             try:
@@ -201,6 +224,7 @@ class MavlinkBridgeNode(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self._build_messages()
         self._degraded_logged = False
+        self._last_result_logged = ''
         self._running = True
         self._reader = threading.Thread(target=self._read_loop, name='mavlink_reader',
                                         daemon=True)
@@ -325,14 +349,24 @@ class MavlinkBridgeNode(Node):
             else:
                 self._count_rejected('nan')
         elif kind == 'HIGHRES_IMU':
+            if self.core.imu_msg != kind:
+                return            # (only one IMU stream is published)
             vals = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro)
             if all(map(math.isfinite, vals)):
                 self._publish_imu(*imu_frd_to_flu(*vals))
             else:
                 self._count_rejected('nan')
         elif kind == 'SCALED_IMU':
+            if self.core.imu_msg != kind:
+                return
             self._publish_imu(*scaled_imu_to_flu(msg.xacc, msg.yacc, msg.zacc, msg.xgyro,
                                                  msg.ygyro, msg.zgyro))
+        elif kind == 'STATUSTEXT':
+            with self._lock:
+                text = self.core.on_statustext(now, msg.severity, msg.text,
+                                               getattr(msg, 'id', 0), getattr(msg, 'chunk_seq', 0))
+            if text is not None:
+                self._log_statustext(msg.severity, text)
         elif kind == 'DISTANCE_SENSOR':
             if msg.orientation != MAV_SENSOR_ROTATION_PITCH_270:
                 return  # not the downward LidarLite
@@ -345,6 +379,14 @@ class MavlinkBridgeNode(Node):
             out.range = distance_sensor_to_rep117(msg.current_distance, msg.min_distance,
                                                   msg.max_distance)
             self.pub_range.publish(out)
+
+    def _log_statustext(self, severity: int, text: str) -> None:
+        """The autopilot's text at the matching log level (MAV_SEVERITY 0-3 error, 4 warning,
+        5-6 info, 7 debug)."""
+        log = self.get_logger()
+        fn = (log.error if severity <= 3 else log.warning if severity == 4 else
+              log.info if severity <= 6 else log.debug)
+        fn(f'autopilot: {text}')
 
     def _count_rejected(self, reason: str) -> None:
         with self._lock:
@@ -482,9 +524,20 @@ class MavlinkBridgeNode(Node):
                     self._send(self.conn.mav.timesync_send, 0, round(o.params[0] * 1e9))
             mon = self.core.link_monitor
             degraded, reason = mon.degraded, mon.reason
+            result = self.core.last_result
         if degraded and not self._degraded_logged:
             self.get_logger().error(reason)
         self._degraded_logged = degraded
+        if result != self._last_result_logged:
+            self._last_result_logged = result
+            if result.startswith(('stop:', 'HIGHRES_IMU refused', 'disarm refused',
+                                  'disarm request timed out')):
+                self.get_logger().warning(result)
+        events = getattr(self.conn, 'events', None)
+        if events:
+            for e in events[:]:
+                self.get_logger().warning(f'MAVLink {e}')
+            del events[:]
 
     def _publish_diagnostics(self) -> None:
         """1 Hz: the link monitor (latency, degraded and why), our own setpoint stream (rate
@@ -505,6 +558,11 @@ class MavlinkBridgeNode(Node):
             measured = core.hover.estimate
             problem = core.px4_config_problem() or core.ardupilot_config_problem()
             params = dict(core.autopilot_params)
+            imu_msg = core.imu_msg
+            texts = list(core.statustexts)
+            stop = core.pending()['stop']
+            link_loss = (core.ardupilot_link_loss() if core.params.autopilot == 'ardupilot'
+                         else '')
         st = DiagnosticStatus(name='mavlink_bridge: link', hardware_id='mavlink')
         if degraded:
             st.level, st.message = DiagnosticStatus.ERROR, reason
@@ -516,7 +574,15 @@ class MavlinkBridgeNode(Node):
                 'degraded': str(degraded), 'mode': mode, 'last_result': last,
                 'offboard_refused_because': problem,
                 'hover_thrust_norm': f'{hover:.4f}', 'hover_thrust_source': hover_src,
-                'hover_thrust_measured': f'{measured:.4f}'}
+                'hover_thrust_measured': f'{measured:.4f}', 'imu_message': imu_msg,
+                'stop_pending': '' if stop is None else str(stop),
+                'statustext_last': (f'[{texts[-1][1]}] {texts[-1][2]}' if texts else ''),
+                'statustext_recent': ' | '.join(t for _, _, t in texts[-4:])}
+        if link_loss:
+            vals['ardupilot_link_loss'] = link_loss
+        tcp = getattr(self.conn, 'stats', None)
+        if tcp is not None:
+            vals.update({f'tcp_{k}': str(v) for k, v in tcp.items()})
         vals.update({f'param_{k}': f'{v:g}' for k, v in params.items()})
         vals.update({k: str(v) for k, v in counters.items()})
         st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]
