@@ -135,6 +135,18 @@ def px4_params(vehicle: VehicleParams, hil: HilParams | None = None, *,
     return p
 
 
+def place_on_ground(w: World) -> None:
+    """Rest on the ground (or the deck) below the start: the world's contact constraint holds
+    the vehicle until the thrust lifts it (no touchdown event: resting from t0), motors off."""
+    v = w.vehicle
+    tr = w.truth()
+    v.z = tr.surface_height_m + w.params.gear_height_m
+    v.vx = v.vy = v.vz = v.ax = v.ay = v.az = 0.0
+    v.roll = v.pitch = v.roll_rate = v.pitch_rate = v.yaw_rate = 0.0
+    v.f1 = v.f2 = v.f3 = v.f4 = 0.0
+    w.resting_on = 'pad' if tr.over_pad and tr.surface_height_m > 0.0 else 'ground'
+
+
 class SimAutopilot(Protocol):
     """What the simulator loop needs of a real autopilot flying the world's vehicle (PX4
     over the Simulator MAVLink API here; ArduPilot's JSON backend, issue 17, is the same
@@ -254,16 +266,7 @@ class Px4Hil:
     # --- set-up --------------------------------------------------------------------------
 
     def _place_on_ground(self) -> None:
-        """Rest on the ground (or the deck) below the start: the world's contact constraint
-        holds the vehicle until the thrust lifts it (no touchdown event: resting from t0)."""
-        w = self.world
-        v = w.vehicle
-        tr = w.truth()
-        v.z = tr.surface_height_m + w.params.gear_height_m
-        v.vx = v.vy = v.vz = v.ax = v.ay = v.az = 0.0
-        v.roll = v.pitch = v.roll_rate = v.pitch_rate = v.yaw_rate = 0.0
-        v.f1 = v.f2 = v.f3 = v.f4 = 0.0
-        w.resting_on = 'pad' if tr.over_pad and tr.surface_height_m > 0.0 else 'ground'
+        place_on_ground(self.world)
 
     def accept(self, timeout_s: float) -> bool:
         """Wait for PX4's connection (it retries every 0.5 ms while booting)."""

@@ -29,10 +29,13 @@ from deckland.sitl.px4 import _cleanup, _tcp_free, _udp_free
 MAX_INSTANCE = 9
 #: ArduPilot's example home (CMAC, Canberra), lat, lon, alt (m AMSL), heading (deg)
 CMAC_HOME = (-35.363261, 149.165230, 584.0, 353.0)
-#: what the mission needs of ArduCopter 4.5 in SITL (FACTS.md, ArduCopter section):
-#: thrust (not climb rate) in SET_ATTITUDE_TARGET, arming checks off (SITL's "Accels
-#: inconsistent" right after boot), no tilt boost of our body-axis thrust
-MISSION_PARAMS: dict[str, float] = {'GUID_OPTIONS': 8, 'ARMING_CHECK': 0, 'ATC_ANGLE_BOOST': 0}
+#: what the mission needs of ArduCopter 4.5 in SITL (FACTS.md, ArduCopter section; the
+#: mavlink_bridge README "Autopilot set-up"): thrust (not climb rate) in SET_ATTITUDE_TARGET,
+#: arming checks off (SITL's "Accels inconsistent" right after boot), no tilt boost of our
+#: body-axis thrust, a stale setpoint flown at most 1 s, and LAND when the companion's
+#: heartbeat stops for FS_GCS_TIMEOUT (5 s): the GCS failsafe on the bridge (system id 1)
+MISSION_PARAMS: dict[str, float] = {'GUID_OPTIONS': 8, 'ARMING_CHECK': 0, 'ATC_ANGLE_BOOST': 0,
+                                    'GUID_TIMEOUT': 1.0, 'FS_GCS_ENABLE': 5, 'SYSID_MYGCS': 1}
 
 _REPO_ROOT = pathlib.Path(__file__).resolve().parents[4]
 
