@@ -28,6 +28,7 @@ from deck_simulator.world import World
 from deckland.sitl.ardupilot import ArduPilotNotFoundError, ArduPilotSitl, find_ardupilot
 from mavlink_bridge.conversions import euler_enu_to_quat_ned
 import pytest
+from test_sitl_ardupilot_bridge import LATENCY_S, STOP_AFTER_S
 from test_sitl_px4_bridge import call, fit_accel, wait_for
 
 try:
@@ -232,7 +233,9 @@ def test_arducopter_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_co
             bridge = MavlinkBridgeNode(context=context, parameter_overrides=[
                 Parameter('connection', value=sitl.connection),
                 Parameter('autopilot', value='ardupilot'),
-                Parameter('mass_kg', value=vp.mass_kg)])
+                Parameter('mass_kg', value=vp.mass_kg),
+                Parameter('max_link_latency_s', value=LATENCY_S),
+                Parameter('stop_after_s', value=STOP_AFTER_S)])
             t_conn = time.monotonic()
             assert phys.accept(20.0), 'ArduCopter sent no servo frame'
             lock = Lockstep(phys)
@@ -250,7 +253,7 @@ def test_arducopter_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_co
             t_ready = time.monotonic() - t_conn
             assert core.imu_msg == 'SCALED_IMU'
             assert world.resting_on == 'ground' and v.z == pytest.approx(vp.gear_height_m)
-            stream = {'go': True, 'thrust': 0.0, 'on': True}
+            stream = {'go': True, 'thrust': 0.0, 'on': True, 'pd': False}
             pub_att = helper.create_publisher(QuaternionStamped, 'control/attitude', 10)
             pub_thr = helper.create_publisher(WrenchStamped, 'control/thrust', 10)
             yaw0 = v.yaw
@@ -267,7 +270,8 @@ def test_arducopter_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_co
                     if stream['on']:
                         f = WrenchStamped()
                         f.header.stamp = now
-                        f.wrench.force.z = stream['thrust']
+                        f.wrench.force.z = (weight * (1.0 + 0.3 * (1.5 - v.z) - 0.5 * v.vz)
+                                            if stream['pd'] else stream['thrust'])
                         pub_thr.publish(f)
                     time.sleep(0.01)
 
@@ -280,13 +284,13 @@ def test_arducopter_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_co
                 assert call(helper, SetBool, 'bridge/arm', SetBool.Request(data=True)).success
                 assert wait_for(core.in_offboard, 5.0), core.last_result
                 assert wait_for(lambda: phys.armed, 3.0)
-                # take off on 1.15 m g, brake on 0.85 m g, then the hover on open-loop m g
-                stream['thrust'] = 1.15 * weight
-                assert wait_for(lambda: v.z > 1.0, 10.0), v.z
-                stream['thrust'] = 0.85 * weight
-                assert wait_for(lambda: v.vz < 0.05, 5.0), v.vz
+                # take off to 1.5 m (a PD loop on the truth), then the hover on open-loop m g
+                stream['pd'] = True
+                assert wait_for(lambda: v.z > 1.3 and abs(v.vz) < 0.1, 15.0), (v.z, v.vz)
+                time.sleep(1.0)
+                stream['pd'] = False
                 stream['thrust'] = weight
-                time.sleep(0.5)
+                time.sleep(0.3)
                 t_off = time.monotonic()
                 samples, tilts = [], []
                 while time.monotonic() - t_off < 5.0:

@@ -1,41 +1,13 @@
 """Decision logic of the MAVLink bridge (pure, time-driven, no sockets, no rclpy).
 
-The ROS node feeds every event with the receive time ``t_s`` (any monotonic origin) and sends
-what the core returns. The core decides:
-
-* link state: the autopilot is "up" while its HEARTBEAT is younger than ``link_timeout_s``;
-* input freshness: a SET_ATTITUDE_TARGET is produced only on a *new* thrust command (the
-  paper's u_z, (16), in newtons) combined with an attitude command that is itself younger than
-  ``input_timeout_s``. When either input goes stale the stream simply stops, so the autopilot's
-  own offboard-loss failsafe (PX4 ``COM_OF_LOSS_T``, ArduPilot's 1 s guided-attitude timeout)
-  takes over; old setpoints are never repeated;
-* the stream rate: a new command is sent *at once* unless a token bucket (rate
-  ``max_stream_rate_hz``, depth ``stream_burst``) is empty; a command whose source stamp is at
-  least ``fresh_period_s`` (one camera period) newer than the last one sent is sent even then
-  (:class:`StreamLimiter`);
-* the offboard entry sequence: OFFBOARD (PX4) / GUIDED_NOGPS (ArduPilot) is requested only
-  while setpoints flow (for ``offboard_warmup_s``; PX4 v1.16 itself needs one setpoint younger
-  than ``COM_OF_LOSS_T``) and only while the autopilot's safety-relevant parameters are known
-  and safe (PX4: ``COM_OBL_RC_ACT``, ``COM_OF_LOSS_T``, hover thrust; ArduPilot:
-  ``GUID_OPTIONS``, ``ATC_ANGLE_BOOST``, ``GUID_TIMEOUT``, hover thrust) — checked again
-  before every DO_SET_MODE it sends (fail closed);
-* ArduPilot's stop: GUIDED_NOGPS never lands by itself when the setpoints stop (it flies the
-  last one for ``GUID_TIMEOUT``, then levels and holds altitude indefinitely), so the bridge
-  commands ``ardupilot_stop_action`` (LAND by default) itself once its stream has stopped for
-  ``stop_after_s`` while ArduPilot flies its setpoints, and LAND when ``control/enabled`` goes
-  False (ArduPilot's land detector confirms a landing in LAND, never in GUIDED_NOGPS);
-* arming and mode requests with retries until the HEARTBEAT confirms them, COMMAND_ACK
-  handling as PX4 sends it (two ACKs per DO_SET_MODE; a disarm refused in the air waits for
-  the land detector) and as ArduPilot does (a disarm FAILED while its land detector catches up
-  is retried for ``disarm_timeout_s``), and the disarm when ``control/enabled`` goes False;
-* periodic MAV_CMD_SET_MESSAGE_INTERVAL requests for the telemetry it needs — driven by their
-  acknowledgements: a refused stream is not asked for again on that connection, and a refused
-  HIGHRES_IMU (ArduPilot has none) falls back to SCALED_IMU — and (``trim``) interval −1 for
-  every other stream the autopilot sends on this link;
-* STATUSTEXT, the autopilot's reasons, kept and repeated ones not logged again.
-
-Bad input (NaN/inf, zero quaternions, out-of-order stamps) is counted in :attr:`rejected` and
-never changes the state.
+The node feeds every event with its receive time ``t_s`` and sends what :class:`BridgeCore`
+returns: link state, input freshness and the data-aware setpoint stream, the OFFBOARD /
+GUIDED_NOGPS entry (only while the autopilot's safety-relevant parameters are known and safe,
+re-checked at every send), ArduPilot's stop action (LAND: its GUIDED_NOGPS never lands by
+itself), arm/mode requests with the retries PX4 v1.16 and ArduCopter 4.5 need, telemetry
+requests driven by their ACKs and trims, STATUSTEXT, and :class:`LinkMonitor` (TIMESYNC).
+The decisions and their measurements are in the package README. Bad input is counted in
+``rejected`` and never changes the state.
 """
 
 from __future__ import annotations

@@ -383,10 +383,16 @@ class MavlinkBridgeNode(Node):
     def _log_statustext(self, severity: int, text: str) -> None:
         """The autopilot's text at the matching log level (MAV_SEVERITY 0-3 error, 4 warning,
         5-6 info, 7 debug)."""
-        log = self.get_logger()
-        fn = (log.error if severity <= 3 else log.warning if severity == 4 else
-              log.info if severity <= 6 else log.debug)
-        fn(f'autopilot: {text}')
+        # one call site per severity: rclpy refuses a call site whose severity changes
+        log, line = self.get_logger(), f'autopilot: {text}'
+        if severity <= 3:
+            log.error(line)
+        elif severity == 4:
+            log.warning(line)
+        elif severity <= 6:
+            log.info(line)
+        else:
+            log.debug(line)
 
     def _count_rejected(self, reason: str) -> None:
         with self._lock:
@@ -499,7 +505,11 @@ class MavlinkBridgeNode(Node):
         with self._lock:
             response.success, response.message = self.core.request_offboard(self._now())
         log = self.get_logger()
-        (log.info if response.success else log.warning)(f'bridge/offboard: {response.message}')
+        # (two call sites: rclpy raises when one call site's severity changes)
+        if response.success:
+            log.info(f'bridge/offboard: {response.message}')
+        else:
+            log.warning(f'bridge/offboard: {response.message}')
         return response
 
     # --- periodic ------------------------------------------------------------------------

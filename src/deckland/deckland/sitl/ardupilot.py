@@ -18,12 +18,13 @@ import pathlib
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import tempfile
 import time
 import weakref
 
-from deckland.sitl.px4 import _cleanup, _tcp_free, _udp_free
+from deckland.sitl.px4 import _cleanup, _udp_free
 
 #: ArduPilot SITL ports add 10 per instance (``-I``); 0-9 are used here
 MAX_INSTANCE = 9
@@ -91,6 +92,18 @@ def ports(instance: int) -> dict[str, int]:
             'physics_udp': 9002 + k, 'sim_in_udp': 9003 + k, 'rc_in_udp': 5501 + k}
 
 
+def _tcp_listenable(port: int) -> bool:
+    """Nobody listens on ``port`` (as ArduPilot binds it, with SO_REUSEADDR: the TIME_WAIT
+    connections of a previous instance on the same port do not count)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(('127.0.0.1', port))
+        except OSError:
+            return False
+    return True
+
+
 def _lock_path(i: int) -> str:
     return f'/tmp/deckland-ardupilot-lock-{i}'
 
@@ -108,7 +121,7 @@ def _try_lock(i: int) -> int | None:
         os.close(fd)
         return None
     p = ports(i)
-    if all(_tcp_free(p[k]) for k in ('mavlink_tcp', 'serial1_tcp', 'serial2_tcp')) and \
+    if all(_tcp_listenable(p[k]) for k in ('mavlink_tcp', 'serial1_tcp', 'serial2_tcp')) and \
             all(_udp_free(p[k]) for k in ('physics_udp', 'sim_in_udp', 'rc_in_udp')):
         return fd
     os.close(fd)
