@@ -48,8 +48,11 @@ def boot(seconds: float) -> dict:
         marks = {'heartbeat': None, 'ArduPilot Ready': None, 'tilt alignment complete': None,
                  'initial yaw alignment complete': None, 'origin set': None,
                  'is using GPS': None, 'local_position': None}
-        conn.mav.command_long_send(1, 1, 511, 0, 32, 1e5, 0, 0, 0, 0, 0)
+        asked = -math.inf
         while time.monotonic() - t0 < 120.0 and marks['local_position'] is None:
+            if marks['heartbeat'] is not None and time.monotonic() - asked > 5.0:
+                asked = time.monotonic()       # (asked again: the first may precede the boot)
+                conn.mav.command_long_send(1, 1, 511, 0, 32, 1e5, 0, 0, 0, 0, 0)
             m = conn.recv_match(blocking=True, timeout=0.2)
             if m is None:
                 continue
@@ -117,7 +120,7 @@ def bridge_cpu(seconds: float) -> dict:
     return out
 
 
-def _json_run(speedup: float, seconds: float) -> dict:
+def _json_run(speedup: float, seconds: float, sim_rate_hz: int | None = None) -> dict:
     from deck_simulator.ardupilot_json import (
         SEA_LEVEL_HOME,
         ArduPilotJson,
@@ -131,9 +134,12 @@ def _json_run(speedup: float, seconds: float) -> dict:
     sc = load_scenario('paper')
     world = World(sc, 1)
     lp = sc.sensors.lidar
-    out: dict = {'speedup': speedup}
-    with ArduPilotSitl('JSON', ardupilot_params(sc.vehicle, lp.min_range_m, lp.max_range_m),
-                       home=SEA_LEVEL_HOME, speedup=speedup, nice=10) as sitl:
+    out: dict = {'speedup': speedup, 'sim_rate_hz': sim_rate_hz or 1200}
+    params = ardupilot_params(sc.vehicle, lp.min_range_m, lp.max_range_m)
+    if sim_rate_hz:
+        params['SIM_RATE_HZ'] = sim_rate_hz
+    th: threading.Thread | None = None
+    with ArduPilotSitl('JSON', params, home=SEA_LEVEL_HOME, speedup=speedup, nice=10) as sitl:
         phys = ArduPilotJson(world, JsonParams(port=sitl.ports['physics_udp']))
         stop = threading.Event()
         try:
@@ -149,17 +155,24 @@ def _json_run(speedup: float, seconds: float) -> dict:
 
             th = threading.Thread(target=lockstep, daemon=True)
             th.start()
+            # (ArduCopter sends STATUSTEXT only on links it has heard from)
+            conn.mav.heartbeat_send(18, 8, 0, 0, 4)
             marks: dict = {}
             while time.monotonic() - w0 < 60.0 and 'yaw' not in marks:
-                m = conn.recv_match(type='STATUSTEXT', blocking=True, timeout=0.2)
-                if m is not None and 'ArduPilot Ready' in m.text:
-                    marks.setdefault('ready', (time.monotonic() - w0, world.t_s))
-                if m is not None and 'initial yaw alignment complete' in m.text:
-                    marks['yaw'] = (time.monotonic() - w0, world.t_s)
-            out['ready_wall_s'] = round(marks['ready'][0], 2)
-            out['ready_sim_s'] = round(marks['ready'][1], 2)
-            out['ekf_yaw_aligned_wall_s'] = round(marks['yaw'][0], 2)
-            out['ekf_yaw_aligned_sim_s'] = round(marks['yaw'][1], 2)
+                m = conn.recv_match(type=['STATUSTEXT', 'HEARTBEAT'], blocking=True, timeout=0.2)
+                now = (round(time.monotonic() - w0, 2), round(world.t_s, 2))
+                if m is None:
+                    continue
+                if m.get_type() == 'HEARTBEAT':
+                    marks.setdefault('heartbeat', now)
+                elif 'ArduPilot Ready' in m.text:
+                    marks.setdefault('ready', now)
+                elif 'tilt alignment complete' in m.text:
+                    marks.setdefault('tilt', now)
+                elif 'initial yaw alignment complete' in m.text:
+                    marks['yaw'] = now
+            # (wall s, simulated s) after the connection
+            out['after_connect_wall_sim_s'] = marks
 
             def window(label: str, setpoint=None) -> None:
                 c0, a0, w_0, s0 = time.process_time(), sitl.cpu_s(), time.monotonic(), world.t_s
@@ -208,13 +221,17 @@ def _json_run(speedup: float, seconds: float) -> dict:
             conn.close()
         finally:
             stop.set()
+            if th is not None:
+                th.join(timeout=3.0)
             phys.close()
     return out
 
 
 def json_physics(seconds: float) -> dict:
-    """ArduCopter on deckland's physics, paced (x1) and unpaced (x20)."""
-    return {'paced': _json_run(1.0, seconds), 'unpaced': _json_run(20.0, seconds)}
+    """ArduCopter on deckland's physics, paced (x1) and unpaced (x20, at SIM_RATE_HZ 1200 and
+    400)."""
+    return {'paced': _json_run(1.0, seconds), 'unpaced': _json_run(20.0, seconds),
+            'unpaced_400hz': _json_run(20.0, seconds, 400)}
 
 
 def main(argv: list[str] | None = None) -> int:
