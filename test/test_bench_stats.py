@@ -13,30 +13,12 @@ from deckland.bench import (
     loop_jitter,
     match_chain,
     parse_proc_stat,
-    percentile,
     read_cpu_ticks,
     set_attitude_target_boot_ms,
     stamp_ms,
     summarize_ms,
 )
-import numpy as np
 import pytest
-
-# --- percentiles ------------------------------------------------------------------------------
-
-def test_percentile_matches_numpy_linear_interpolation():
-    rng = random.Random(7)
-    for n in (1, 2, 3, 10, 101, 1000):
-        xs = [rng.expovariate(100.0) for _ in range(n)]
-        for q in (0.0, 1.0, 50.0, 90.0, 99.0, 99.9, 100.0):
-            assert percentile(xs, q) == pytest.approx(float(np.percentile(xs, q)), rel=1e-12)
-
-
-def test_percentile_edges():
-    assert math.isnan(percentile([], 50.0))
-    assert math.isnan(percentile([1.0], 101.0))
-    assert percentile([3.0, 1.0, 2.0], 50.0) == 2.0       # order does not matter
-    assert percentile([0.0, 10.0], 99.0) == pytest.approx(9.9)
 
 
 def test_summarize_converts_to_ms_and_is_strict_json_when_empty():

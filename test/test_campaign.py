@@ -2,8 +2,10 @@
 
 import json
 import math
+import os
 
 from deck_simulator.scenario import load_scenario
+from deckland.backends import CampaignError, LocalPool, run_chunk
 from deckland.campaign import format_table, run_campaign, run_seed, summarize
 from deckland.cli import main as cli_main
 from deckland.runner import RunConfig, RunResult, run_landing
@@ -46,6 +48,20 @@ def test_a_failure_is_reproduced_alone_from_its_seed():
     alone = run_landing(scenario, seed, RunConfig())
     assert results[2].seed == seed
     assert results[2].summary() == alone.summary()
+
+
+def _dies_in_chunk_1(chunk):
+    if chunk.index == 1:
+        os._exit(1)     # a worker killed mid-campaign (OOM killer, kill -9)
+    return run_chunk(chunk)
+
+
+def test_a_local_worker_that_dies_fails_the_campaign_naming_its_seeds():
+    """The pool breaks instead of hanging; the report never silently lacks the runs."""
+    pool = LocalPool(2, chunk_fn=_dies_in_chunk_1)
+    with pytest.raises(CampaignError, match=r'worker died') as info:
+        run_campaign('paper', 4, 2, RunConfig(), progress=False, backend=pool, chunk=2)
+    assert 'seeds 200002..200003 (chunk 1)' in str(info.value)
 
 
 def test_deck_blind_baseline_lands_harder_than_the_deck_relative_descent():

@@ -8,13 +8,8 @@ independently of the package.
 import math
 import timeit
 
-from apron_estimator.types import VerticalState
-from dob_altitude.adapter import (
-    altitude_input,
-    hover_thrust_n,
-    make_controller,
-    parse_vertical_frame,
-)
+from deckland_common.contract import VerticalState, parse_vertical_frame
+from dob_altitude.adapter import altitude_input, hover_thrust_n, make_controller
 from dob_altitude.dob import DobAltitudeController, DobParams
 from dob_altitude.pid import PidAltitudeController, PidParams
 import pytest
@@ -72,13 +67,13 @@ def test_hover_thrust_is_weight_over_ground_effect_gain():
 
 def test_surface_frame_uses_height_and_closing_speed():
     v = vstate()
-    inp = altitude_input(v, 1.5, -0.4, 0.1, 'surface', 0.05, -0.02)
+    inp = altitude_input(v, 1.5, -0.4, 0.1, 'relative', 0.05, -0.02)
     assert (inp.z_m, inp.z_dot_mps) == (v.height_m, v.closing_speed_mps)
     assert (inp.z_d_m, inp.z_d_dot_mps, inp.z_d_ddot_mps2) == (1.5, -0.4, 0.1)
     assert (inp.roll_rad, inp.pitch_rad) == (0.05, -0.02)
     assert inp.rotor_height_m == pytest.approx(2.05)
     assert inp.surface_accel_mps2 == 0.0  # the paper: no feed-forward unless enabled
-    ff = altitude_input(v, 1.5, -0.4, 0.1, 'surface', 0.0, 0.0, 0.1, surface_accel_ff=True)
+    ff = altitude_input(v, 1.5, -0.4, 0.1, 'relative', 0.0, 0.0, 0.1, surface_accel_ff=True)
     assert ff.surface_accel_mps2 == v.surface_accel_mps2
     assert ff.rotor_height_m == pytest.approx(2.1)
 
@@ -86,7 +81,7 @@ def test_surface_frame_uses_height_and_closing_speed():
 def test_world_frame_uses_altitude_but_ground_effect_still_sees_the_surface():
     v = vstate()
     for enabled in (False, True):
-        inp = altitude_input(v, 4.0, -0.5, 0.0, 'world', 0.0, 0.0, surface_accel_ff=enabled)
+        inp = altitude_input(v, 4.0, -0.5, 0.0, 'world_rate', 0.0, 0.0, surface_accel_ff=enabled)
         assert (inp.z_m, inp.z_dot_mps) == (v.vehicle_altitude_m, v.vehicle_vz_mps)
         assert inp.rotor_height_m == pytest.approx(v.height_m + 0.05)  # not altitude + 0.05
         assert inp.surface_accel_mps2 == 0.0  # deck-blind: never a deck feed-forward
@@ -95,11 +90,10 @@ def test_world_frame_uses_altitude_but_ground_effect_still_sees_the_surface():
 def test_unknown_frame_raises_and_names_are_normalised():
     with pytest.raises(ValueError, match='vertical_frame'):
         altitude_input(vstate(), 1.0, 0.0, 0.0, 'deck', 0.0, 0.0)
-    assert parse_vertical_frame('') == 'surface'
-    assert parse_vertical_frame(' Surface ') == 'surface'
-    assert parse_vertical_frame('relative') == 'surface'   # landing_planner vertical_mode
-    assert parse_vertical_frame('world_rate') == 'world'
-    assert parse_vertical_frame('WORLD') == 'world'
+    assert parse_vertical_frame('') == 'relative'          # an unset joint name: the paper's
+    assert parse_vertical_frame(' Relative ') == 'relative'
+    assert parse_vertical_frame('WORLD_RATE') == 'world_rate'
+    assert parse_vertical_frame('surface') is None          # one name per frame: no aliases
     assert parse_vertical_frame('map') is None
 
 
@@ -110,7 +104,7 @@ def test_first_command_at_zero_error_is_hover_thrust_with_ground_effect_of_the_s
     c = math.cos(roll) * math.cos(pitch)
     for kind in ('dob', 'pid'):
         out = make_controller(kind).step(
-            altitude_input(v, 1.2, 0.0, 0.0, 'world', roll, pitch), 0.01)
+            altitude_input(v, 1.2, 0.0, 0.0, 'world_rate', roll, pitch), 0.01)
         assert out.gamma_bar == pytest.approx(gamma(h + 0.05), rel=1e-12)
         assert out.thrust_n == pytest.approx(M * G / (gamma(h + 0.05) * c), rel=1e-9)
 
@@ -123,7 +117,7 @@ def fly(frame, ff, z_d, amp=0.5, period_s=6.0, t_end=30.0, kind='dob'):
     ctrl = make_controller(kind, 'paper')
     dt, div = 0.001, 10
     z_v = z_d  # deck at 0 at t = 0: same start in both frames
-    v_v = amp * w if frame == 'surface' else 0.0
+    v_v = amp * w if frame == 'relative' else 0.0
     u = M * G
     log = []
     for k in range(int(t_end / dt)):
@@ -147,13 +141,13 @@ def fly(frame, ff, z_d, amp=0.5, period_s=6.0, t_end=30.0, kind='dob'):
 def test_surface_frame_rejects_heave_as_disturbance_and_feed_forward_removes_it():
     amp, period = 0.5, 6.0
     w = 2.0 * math.pi / period
-    paper = fly('surface', False, 2.0, amp, period)
+    paper = fly('relative', False, 2.0, amp, period)
     err_paper = max(abs(h - 2.0) for _, h, _, _ in paper)
     # linearised DOB loop: e/d = s / ((s+K)(s+Γ)(s+Λ)), d = −a_s of amplitude A ω²
     s = complex(0.0, w)
     predicted = amp * w * w * abs(s / ((s + 0.85) * (s + 1.6) * (s + 10.47)))
     assert err_paper == pytest.approx(predicted, rel=0.15)
-    with_ff = fly('surface', True, 2.0, amp, period)
+    with_ff = fly('relative', True, 2.0, amp, period)
     err_ff = max(abs(h - 2.0) for _, h, _, _ in with_ff)
     assert err_ff < 0.1 * err_paper
     # with the feed-forward the observer no longer has to explain the heave: d̂ ≈ 0
@@ -163,7 +157,7 @@ def test_surface_frame_rejects_heave_as_disturbance_and_feed_forward_removes_it(
 def test_world_frame_is_blind_to_the_deck():
     amp = 0.5
     for ff in (False, True):
-        log = fly('world', ff, 2.5, amp)
+        log = fly('world_rate', ff, 2.5, amp)
         assert max(abs(z_v - 2.5) for _, _, z_v, _ in log) < 1e-3  # holds its world altitude
         heights = [h for _, h, _, _ in log]
         assert max(heights) - min(heights) == pytest.approx(2.0 * amp, rel=0.02)
@@ -172,7 +166,7 @@ def test_world_frame_is_blind_to_the_deck():
 def test_altitude_input_cost():
     v = vstate()
     n = 20000
-    best = min(timeit.repeat(lambda: altitude_input(v, 1.0, 0.0, 0.0, 'surface', 0.0, 0.0,
+    best = min(timeit.repeat(lambda: altitude_input(v, 1.0, 0.0, 0.0, 'relative', 0.0, 0.0,
                                                     0.05, True), number=n, repeat=3))
     per_call_us = best / n * 1e6
     print(f'altitude_input: {per_call_us:.2f} us')

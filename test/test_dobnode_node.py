@@ -36,8 +36,8 @@ def wait_for(pred, timeout_s=5.0):
 class Helper:
     """Publishes the node's inputs at 100 Hz and records its outputs (with receipt times)."""
 
-    def __init__(self, context, executor, height_m=1.8, z_d_m=2.0, frame='surface'):
-        from apron_estimator.types import APRON_STATE_LAYOUT, ApronState, VerticalState
+    def __init__(self, context, executor, height_m=1.8, z_d_m=2.0, frame='relative'):
+        from deckland_common.contract import APRON_STATE_LAYOUT, ApronState, VerticalState
         from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import Vector3Stamped, WrenchStamped
@@ -264,7 +264,7 @@ def test_disabled_publishes_nothing_and_world_frame_reference(ros_context):
     context, executor = ros_context
     node = make_node(context, executor)
     # world frame: vehicle altitude 2.3 (height 1.8 above a deck at 0.5), z_d = 2.5 world
-    helper = Helper(context, executor, height_m=1.8, z_d_m=2.5, frame='world')
+    helper = Helper(context, executor, height_m=1.8, z_d_m=2.5, frame='world_rate')
     helper.pub_enabled.publish(Bool(data=False))
     helper.start(node)
     assert wait_for(lambda: node.withheld['disabled'] >= 20)

@@ -6,7 +6,7 @@ import random
 
 from apron_estimator.camera import CameraParams
 from apron_estimator.estimator import ApronEstimator, EstimatorParams
-from apron_estimator.types import (
+from deckland_common.contract import (
     APRON_STATE_V1_FIELDS,
     APRON_STATE_V1_LEN,
     ApronState,
@@ -294,7 +294,7 @@ def test_surface_rebase_rescales_the_horizontal_estimate():
 
 def test_decode_apron_array_accepts_the_layout_and_names_each_rejection():
     """The one decoder the altitude and planner nodes share for `apron/state`."""
-    from apron_estimator.types import APRON_STATE_LAYOUT, ApronState, decode_apron_array
+    from deckland_common.contract import APRON_STATE_LAYOUT, ApronState, decode_apron_array
     good = ApronState.untracked(12.5).to_array()
     for label in (APRON_STATE_LAYOUT, None):
         state, reason, _ = decode_apron_array(label, good)

@@ -11,15 +11,20 @@ import timeit
 
 from apron_estimator.inputs import (
     LocalPositionPairer,
-    attitude_from_quaternion,
     blocks_from_cloud,
     lidar_range,
-    normalised_quaternion,
     rotate_body_to_world,
     world_accel_from_specific_force,
 )
-from apron_estimator.types import PixyBlock
-from deckland_common.frames import euler_to_quaternion, mat_t_vec, mat_vec, rot_body_to_world
+from deckland_common.contract import PixyBlock
+from deckland_common.frames import (
+    attitude_from_quaternion,
+    euler_to_quaternion,
+    mat_t_vec,
+    mat_vec,
+    normalised_quaternion,
+    rot_body_to_world,
+)
 import pytest
 
 G = 9.81

@@ -210,7 +210,7 @@ def make(ros_context):
 
 
 def latest_state(helper):
-    from apron_estimator.types import ApronState
+    from deckland_common.contract import ApronState
     msgs = helper.got('state')
     return ApronState.from_array(msgs[-1][1].data) if msgs else None
 
@@ -308,7 +308,7 @@ def test_visibility_loss_then_track_loss(make):
 
 
 def state_of(msg):
-    from apron_estimator.types import ApronState
+    from deckland_common.contract import ApronState
     return ApronState.from_array(msg.data)
 
 

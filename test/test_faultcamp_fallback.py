@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import math
 
+from deckland_common.contract import Mode
 from landing_planner.planner import LandingPlanner, PlannerParams
-from landing_planner.types import Mode
 from test_planner_support import make_apron, make_vehicle, make_vertical
 
 DT = 0.01

@@ -15,8 +15,8 @@ import math
 
 from apron_estimator.camera import CameraParams
 from apron_estimator.estimator import ApronEstimator
-from apron_estimator.types import PixyBlock
 from apron_estimator.vertical import VerticalFilter
+from deckland_common.contract import PixyBlock
 import pytest
 
 DT = 0.01                    # sensors at 100 Hz, camera at 50 Hz

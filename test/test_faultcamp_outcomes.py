@@ -9,9 +9,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from deck_simulator.outcome import classify
 from deck_simulator.scenario import builtin_names, load_scenario
 from deck_simulator.world import World
-from deckland.runner import RunConfig, RunResult, classify, run_landing
+from deckland.runner import RunConfig, RunResult, run_landing
 import pytest
 
 SEEDS = (100000, 100001, 100002)
@@ -102,12 +103,14 @@ def test_failsafe_return_climbs_flies_home_and_lands_at_the_land_speed():
 
 
 def test_classify_names_the_safety_class_of_a_run():
-    base = RunResult(seed=1, scenario='s', controller='dob')
-    assert classify(dataclasses.replace(base, crash=True, contact_kind='pad')) == 'crash'
-    assert classify(dataclasses.replace(base, contact_kind='pad')) == 'deck'
-    assert classify(dataclasses.replace(base, contact_kind='ground')) == 'fallback'
-    hover = dataclasses.replace(base, final_height_m=2.0, final_speed_mps=0.1)
-    assert classify(hover) == 'hold'
-    assert classify(dataclasses.replace(hover, final_speed_mps=1.5)) == 'unstable'
-    assert classify(hover, roll_rad=0.6) == 'unstable'
-    assert classify(dataclasses.replace(hover, final_height_m=0.1)) == 'unstable'
+    assert classify(True, 'pad', math.nan, math.nan) == 'crash'
+    assert classify(False, 'pad', math.nan, math.nan) == 'deck'
+    assert classify(False, 'ground', math.nan, math.nan) == 'fallback'
+    assert classify(False, 'none', 0.1, 2.0) == 'hold'
+    assert classify(False, 'none', 1.5, 2.0) == 'unstable'          # too fast
+    assert classify(False, 'none', 0.1, 2.0, roll_rad=0.6) == 'unstable'   # too tilted
+    assert classify(False, 'none', 0.1, 0.1) == 'unstable'          # too low
+    assert classify(False, 'none', math.nan, math.nan) == 'unstable'
+    # the runner's record is the simulator's, plus the runner's own fields
+    r = RunResult(seed=1, scenario='s', controller='dob')
+    assert r.outcome == '' and r.contact_kind == 'none' and math.isnan(r.link_degraded_s)

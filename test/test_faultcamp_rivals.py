@@ -7,9 +7,8 @@ import math
 import random
 
 from apron_estimator.horizontal import HorizontalParams, HorizontalTracker
-from apron_estimator.types import ApronState, VerticalState
+from deckland_common.contract import ApronState, Mode, VehicleState, VerticalState
 from landing_planner.planner import LandingPlanner, PlannerParams
-from landing_planner.types import Mode, VehicleState
 
 DT = 0.02
 GLINT = (0.6, 0.0)      # glint minus beacon, ENU (m)

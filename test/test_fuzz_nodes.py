@@ -489,7 +489,7 @@ def apron_plans():
 
 def test_apron_estimator_survives_fuzzed_inputs(ros_context):
     from apron_estimator.node import ApronEstimatorNode
-    from apron_estimator.types import ApronState
+    from deckland_common.contract import ApronState
     from deckland_common.ros_node import RELIABLE_QOS
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped, TwistStamped, Vector3Stamped
@@ -571,7 +571,7 @@ DOB_READS = frozenset({0, 20, 21, 22, 23, 26, 27})
 
 
 def apron_state_plan(reads, height_m=2.0, z_m=2.0):
-    from apron_estimator.types import APRON_STATE_LAYOUT, ApronState, VerticalState
+    from deckland_common.contract import APRON_STATE_LAYOUT, ApronState, VerticalState
     from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
     def make(t):

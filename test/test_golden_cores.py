@@ -11,10 +11,10 @@ from pathlib import Path
 from apron_estimator.estimator import EstimatorParams
 from apron_estimator.vertical import VerticalParams
 from dob_altitude.dob import DobParams
+import golden
 from landing_planner.horizontal import HorizontalController, HorizontalParams
 import pytest
 
-from deckland import golden
 from dob_altitude import adapter
 
 BAG = Path(__file__).parent / 'fixtures' / 'golden_paper'

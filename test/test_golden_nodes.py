@@ -4,7 +4,10 @@ their outputs are compared with the recording within NODE_TOLERANCES."""
 
 from pathlib import Path
 
-from deckland import golden
+import golden
+import pytest
+
+pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
 
 BAG = Path(__file__).parent / 'fixtures' / 'golden_paper'
 

@@ -1,4 +1,4 @@
-"""Scenario MAVLink faults in the node graph: deck_simulator's ImpairedLink on the wire.
+"""Scenario MAVLink faults in the node graph: deck_simulator.link.ImpairedLink on the wire.
 
 Pure part: SimulationLoop + Px4Emulator over a MemoryLink, the test playing the bridge
 (sim time, deterministic). Node part: DeckSimulatorNode in a private rclpy context, a pymavlink
@@ -10,15 +10,18 @@ import math
 import socket
 import time
 
-from deck_simulator.node import ImpairedLink, SimulationLoop
-from deck_simulator.px4_emulator import EmulatorParams, MemoryLink, Px4Emulator
+from deck_simulator.link import ImpairedLink
+from deck_simulator.loop import SimulationLoop
+from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
 from deck_simulator.scenario import scenario_from_dict
+from deck_simulator.transport import MemoryLink
+from deck_simulator.vehicle import VehicleParams
 from mavlink_bridge.conversions import set_attitude_target_fields
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
 
-G = 9.81
-M = 2.71
+G = VehicleParams().gravity_mps2
+M = VehicleParams().mass_kg
 HOVER = (0.0, 0.0, 0.0, M * G)
 
 CALM = {
@@ -75,8 +78,8 @@ def test_link_loss_window_cuts_both_ways_and_the_emulator_takes_its_failsafe():
                         'loss_timeout_s': 0.5, 'land_speed_mps': 0.5}))
     assert isinstance(rig.sim.link, ImpairedLink) and rig.emu.transport is rig.sim.link
     # the autopilot's failsafe settings are the fault's keys
-    assert rig.emu.params.offboard_loss_timeout_s == 0.5
-    assert rig.emu.params.land_speed_mps == 0.5
+    assert rig.sim.autopilot.params.offboard_loss_timeout_s == 0.5
+    assert rig.sim.autopilot.params.land_speed_mps == 0.5
     rig.offboard()
     rig.run(3.0 - rig.sim.world.t_s)                   # up to the window
     t_cut = rig.sim.world.t_s
@@ -104,8 +107,9 @@ def test_link_loss_window_cuts_both_ways_and_the_emulator_takes_its_failsafe():
     assert rig.emu.mode == 'AUTO.LAND'
     # descending at the fault's land speed on the emulated autopilot
     assert rig.sim.world.truth().velocity_mps[2] == pytest.approx(-0.5, abs=0.1)
-    # the world's own command_link failsafe stays unused in the graph (no double autopilot)
-    assert rig.sim.world.failsafe is None
+    # one autopilot: the world flies the emulator's, the in-process command link is unused
+    assert rig.sim.world.autopilot is rig.emu.autopilot and rig.sim.world.link is None
+    assert rig.sim.world.failsafe == 'land' and rig.sim.autopilot.failsafes == 1
 
 
 @pytest.mark.parametrize('p', [0.3, 0.6])
@@ -180,15 +184,15 @@ def test_no_wire_faults_means_no_wrapper_and_node_kill_is_left_to_deckland_up():
     for sc in (scenario(), scenario({'type': 'lidar_dropout', 'start_s': 1.0})):
         rig = Rig(sc)
         assert rig.sim.link is None and rig.emu.transport is rig.link.a
-        assert rig.emu.params.offboard_loss_timeout_s == 1.0
-        assert rig.emu.params.offboard_loss_action == 'land'
+        assert rig.sim.autopilot.params.offboard_loss_timeout_s == 1.0
+        assert rig.sim.autopilot.params.offboard_loss_action == 'land'
     # node_kill: `deckland up` kills the process, nothing on the wire; its failsafe keys still
     # configure the emulated PX4 (the same autopilot settings as for the MAVLink faults)
     rig = Rig(scenario({'type': 'node_kill', 'node': 'dob_altitude', 'start_s': 1.0,
                         'loss_timeout_s': 0.3, 'action': 'return'}))
     assert rig.sim.link is None and rig.emu.transport is rig.link.a
-    assert rig.emu.params.offboard_loss_timeout_s == 0.3
-    assert rig.emu.params.offboard_loss_action == 'return'
+    assert rig.sim.autopilot.params.offboard_loss_timeout_s == 0.3
+    assert rig.sim.autopilot.params.offboard_loss_action == 'return'
     with pytest.raises(ValueError, match='downlink'):
         Rig(scenario({'type': 'mavlink_loss'}), downlink='sometimes')
 
@@ -279,7 +283,7 @@ def test_node_link_loss_window_triggers_the_emulator_failsafe_over_udp(ros_conte
         assert not any(3.55 < t < 4.95 for t, _, _ in hbs), modes
         assert any(3.0 < t < 3.5 for t, _, _ in hbs) and any(5.0 < t < 5.5 for t, _, _ in hbs)
         assert any(main == 4 and sub == 6 and t > 5.0 for t, main, sub in hbs), modes
-        assert node.emulator.failsafe_active and node.emulator.counters['failsafes'] == 1
+        assert node.emulator.failsafe_active and node.sim.autopilot.failsafes == 1
         c = node.sim.link.counters
         assert c['rx_cut'] > 50 and c['tx_cut'] > 50
         assert node.thread_errors == 0

@@ -1,4 +1,4 @@
-"""The suite runs ruff over the whole workspace (configuration in pyproject.toml)."""
+"""The suite runs ruff over the whole workspace and mypy over the cores (pyproject.toml)."""
 
 import pathlib
 import shutil
@@ -11,6 +11,13 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 def test_ruff_clean():
     ruff = shutil.which('ruff') or str(pathlib.Path(sys.executable).with_name('ruff'))
     result = subprocess.run([ruff, 'check', str(ROOT)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_mypy_clean_over_the_cores():
+    """The cores type-check (files and exceptions in pyproject.toml's [tool.mypy])."""
+    result = subprocess.run([sys.executable, '-m', 'mypy'], cwd=ROOT, capture_output=True,
+                            text=True)
     assert result.returncode == 0, result.stdout + result.stderr
 
 

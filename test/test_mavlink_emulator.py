@@ -1,9 +1,11 @@
-"""deck_simulator.px4_emulator over an in-memory link: PX4 offboard rules and failsafes."""
+"""deck_simulator.px4_emulator over an in-memory link: PX4 offboard rules and failsafes (the
+emulator without a world runs its autopilot's mode logic itself)."""
 
 import math
 import random
 
-from deck_simulator.px4_emulator import EmulatorParams, MemoryLink, Px4Emulator
+from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
+from deck_simulator.transport import MemoryLink
 from mavlink_bridge.conversions import ThrustCalibration, set_attitude_target_fields
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
@@ -96,12 +98,11 @@ def test_offboard_needs_one_fresh_setpoint_when_armed():
     c.command(176, 1.0, 6.0)
     c.emu.update(0.02)
     assert c.emu.acks[-2:] == [(176, 0), (176, 0)]
-    assert c.emu.mode == 'OFFBOARD' and c.emu.armed
-    cmd = c.emu.command()
-    assert cmd.kind == 'offboard'
-    assert (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad) == pytest.approx((0.1, 0.05, 1.0),
-                                                                       abs=1e-6)
-    assert cmd.thrust_n == pytest.approx(20.0, abs=1e-4)
+    assert c.emu.mode == 'OFFBOARD' and c.emu.armed and c.emu.kind == 'offboard'
+    sp = c.emu.setpoint
+    assert (sp.roll_rad, sp.pitch_rad, sp.yaw_rad) == pytest.approx((0.1, 0.05, 1.0),
+                                                                    abs=1e-6)
+    assert sp.thrust_n == pytest.approx(20.0, abs=1e-4)
 
 
 def test_offboard_setpoint_older_than_com_of_loss_t_is_refused():
@@ -135,20 +136,18 @@ def test_offboard_loss_failsafe_lands_after_com_of_loss_t():
     last = t
     t += 0.5
     c.emu.update(t)                                               # 0.5 s silence: hold last
-    assert c.emu.mode == 'OFFBOARD' and c.emu.command().kind == 'offboard'
+    assert c.emu.mode == 'OFFBOARD' and c.emu.kind == 'offboard'
     t = last + 1.05
     c.emu.update(t)
     assert c.emu.mode == 'AUTO.LAND' and c.emu.failsafe_active
-    c.state(t, vz=0.0)
-    cmd = c.emu.command()
-    assert cmd.kind == 'failsafe_land' and cmd.roll_rad == 0.0 and cmd.pitch_rad == 0.0
-    weight = 2.71 * 9.81
-    assert cmd.thrust_n < weight                                  # descending from rest
-    c.state(t, vz=-0.7)
-    assert c.emu.command().thrust_n == pytest.approx(weight)      # at land speed: hover thrust
+    assert c.emu.kind == 'failsafe_land' and c.emu.autopilot.failsafes == 1
     # setpoints coming back do not re-enter OFFBOARD by themselves
     t = stream(c, t, t + 2.0)
-    assert c.emu.mode == 'AUTO.LAND'
+    assert c.emu.mode == 'AUTO.LAND' and c.emu.failsafe_active
+    # the companion's request does (and ends the failsafe)
+    c.command(176, 1.0, 6.0)
+    c.emu.update(t)
+    assert c.emu.mode == 'OFFBOARD' and not c.emu.failsafe_active
 
 
 def test_disarm_rules():
@@ -161,7 +160,7 @@ def test_disarm_rules():
     assert c.emu.armed and c.emu.acks[-1] == (400, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
     c.command(400, 0.0, 21196.0)                                  # forced
     c.emu.update(0.2)
-    assert not c.emu.armed and c.emu.command().kind == 'idle'
+    assert not c.emu.armed and c.emu.kind == 'idle'
     # auto-disarm 2 s after touchdown (COM_DISARM_LAND)
     c.command(400, 1.0)
     c.emu.update(0.3)
@@ -217,7 +216,7 @@ def test_default_px4_loss_action_descends_in_posctl():
     c.emu.update(1.05)
     # PX4 default COM_OBL_RC_ACT = 0 without RC: the heartbeat reads POSCTL, it descends
     assert c.emu.mode == 'POSCTL' and c.emu.failsafe_active
-    assert c.emu.command().kind == 'failsafe_land'
+    assert c.emu.kind == 'failsafe_land'
 
 
 def test_after_a_failsafe_landing_px4_reads_offboard_while_disarmed():
@@ -230,7 +229,7 @@ def test_after_a_failsafe_landing_px4_reads_offboard_while_disarmed():
     c.emu.update(3.6)                                             # COM_DISARM_LAND = 2 s
     assert not c.emu.armed and c.emu.mode == 'OFFBOARD' and not c.emu.failsafe_active
     c.emu.update(10.0)                                            # no failsafe while disarmed
-    assert c.emu.mode == 'OFFBOARD' and c.emu.command().kind == 'idle'
+    assert c.emu.mode == 'OFFBOARD' and c.emu.kind == 'idle'
 
 
 def test_garbage_and_bad_setpoints_are_counted_not_raised():
@@ -262,10 +261,9 @@ def test_emulator_cost():
         t[0] += 0.0025
         c.emu.update(t[0])
         c.state(t[0])
-        c.emu.command()
         c.link.b.inbox.clear()
 
     n = 2000
     us = timeit.timeit(one, number=n) / n * 1e6
-    print(f'px4 emulator: {us:.1f} us per 400 Hz step (update + publish_state + command)')
+    print(f'px4 emulator: {us:.1f} us per 400 Hz step (update + publish_state)')
     assert us < 2000.0

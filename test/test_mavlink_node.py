@@ -185,7 +185,7 @@ def test_commands_offboard_stale_cutoff_and_failsafe(rig):
         # PX4's own offboard-loss failsafe takes over after COM_OF_LOSS_T
         assert wait_for(lambda: runner.emu.failsafe_active, 2.0)
         assert runner.emu.mode == 'AUTO.LAND'
-        assert runner.emu.command().kind == 'failsafe_land'
+        assert runner.emu.kind == 'failsafe_land'
         assert wait_for(lambda: mode[-1].data == 'AUTO.LAND', 2.0)
     finally:
         sending['go'] = False

@@ -16,6 +16,8 @@ import time
 from deckland.orchestrator import NodeSpec, Orchestrator, _ros_value, describe_status, load_graph
 import pytest
 
+pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
+
 CHILDREN = {
     # prints its lines and exits with status 3
     'crasher': """

@@ -1,8 +1,8 @@
 """The search / retry machine (Steps 11-12) and the handler table of the landing planner."""
 
+from deckland_common.contract import Mode
 from landing_planner.planner import _STATES, PlannerParams
 from landing_planner.search import SearchPattern
-from landing_planner.types import Mode
 import pytest
 from test_planner_transitions import AREA, Driver
 

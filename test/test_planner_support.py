@@ -12,11 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 
-from apron_estimator.types import ApronState, VerticalState
+from deckland_common.contract import ApronState, Mode, PlannerOutput, VehicleState, VerticalState
 from deckland_common.frames import mat_vec, rot_body_to_world
 from landing_planner.horizontal import HorizontalController, HorizontalParams
 from landing_planner.planner import LandingPlanner, PlannerParams
-from landing_planner.types import Mode, PlannerOutput, VehicleState
 
 G = 9.81
 

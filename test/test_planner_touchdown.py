@@ -10,10 +10,10 @@ the leash the reference keeps running down at the final speed and the law turns 
 error into catch-up speed at contact (Λ·e_z on the DOB's sliding surface (14)).
 """
 
+from deckland_common.contract import Mode
 from dob_altitude.adapter import ROTOR_HEIGHT_OFFSET_M, altitude_input, make_controller
 from dob_altitude.ground_effect import ground_effect_gain
 from landing_planner.planner import LandingPlanner, PlannerParams
-from landing_planner.types import Mode
 import pytest
 from test_planner_support import make_apron, make_vehicle, make_vertical
 
@@ -45,7 +45,7 @@ def fly(kind, t_reversal_s, omega_radps=6.0, params=None):
         if out.mode is Mode.FINAL and t_final is None:
             t_final = t
         landed_early = landed_early or out.mode is Mode.LANDED
-        inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, 'surface',
+        inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, 'relative',
                              0.0, 0.0)
         thrust = ctl.step(inp, DT).thrust_n if out.thrust_enabled else 0.0
         h = DT / SUBSTEPS

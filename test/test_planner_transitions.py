@@ -3,8 +3,8 @@
 import itertools
 import math
 
+from deckland_common.contract import Mode
 from landing_planner.planner import LandingPlanner, PlannerParams
-from landing_planner.types import Mode
 import pytest
 from test_planner_support import make_apron, make_vehicle, make_vertical
 

@@ -64,7 +64,7 @@ class Helper:
 
     def __init__(self, context, executor, position=(0.0, 0.0, 2.0), yaw_rad=0.0,
                  height_m=2.0):
-        from apron_estimator.types import APRON_STATE_LAYOUT, ApronState, VerticalState
+        from deckland_common.contract import APRON_STATE_LAYOUT, ApronState, VerticalState
         from deckland_common.ros_node import LATCHED_QOS, RELIABLE_QOS
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped, QuaternionStamped, TwistStamped
@@ -453,7 +453,7 @@ def test_every_core_field_is_a_parameter():
     from dataclasses import fields
 
     from landing_planner.horizontal import HorizontalParams
-    from landing_planner.node import HORIZONTAL_FIELDS, PARAMS, PLANNER_DESCRIPTIONS
+    from landing_planner.node_params import HORIZONTAL_FIELDS, PARAMS, PLANNER_DESCRIPTIONS
     from landing_planner.planner import PlannerParams
     names = {s.name for s in PARAMS}
     for f in fields(PlannerParams):

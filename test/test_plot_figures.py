@@ -7,8 +7,8 @@ from pathlib import Path
 import random
 import struct
 
-from apron_estimator.types import ApronState, VerticalState
 from deckland.runner import TRACE_FIELDS, RunConfig, run_landing
+from deckland_common.contract import ApronState, VerticalState
 from deckland_common.frames import euler_to_quaternion, rot_body_to_world
 from geometry_msgs.msg import Vector3Stamped, WrenchStamped
 from nav_msgs.msg import Odometry

@@ -1,4 +1,4 @@
-"""deck_simulator node, ROS-free part: SimulationLoop + AutopilotEmulation over a memory link.
+"""deck_simulator node, ROS-free part: SimulationLoop + the emulated autopilot over a memory link.
 
 The emulated autopilot is driven the way mavlink_bridge drives PX4 (MAVLink bytes on a
 MemoryLink); the Pixy bytes are parsed with pixy_driver's parser. Assertions are physics
@@ -6,30 +6,28 @@ MemoryLink); the Pixy bytes are parsed with pixy_driver's parser. Assertions are
 campaign's outcome semantics.
 """
 
+import dataclasses
 import json
 import math
 import random
 import timeit
 
-from deck_simulator.node import (
-    AutopilotEmulation,
-    AutopilotParams,
-    SimulationLoop,
-    TickSchedule,
-    body_rates,
-    outcome_json,
-    parse_mavlink_url,
-)
-from deck_simulator.px4_emulator import EmulatorParams, MemoryLink, Px4Emulator
+from deck_simulator.autopilot import AutopilotParams, EmulatedAutopilot
+from deck_simulator.loop import SimulationLoop, TickSchedule, body_rates
+from deck_simulator.outcome import RunOutcome, outcome_json
+from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
 from deck_simulator.scenario import load_scenario, scenario_from_dict
+from deck_simulator.transport import MemoryLink, parse_mavlink_url
+from deck_simulator.vehicle import VehicleParams
+from deckland.runner import RunResult
 from deckland_common.frames import rot_body_to_world
 from mavlink_bridge.conversions import set_attitude_target_fields
 from pixy_driver.protocol import PixyParser
 from pymavlink.dialects.v20 import common as mavlink
 import pytest
 
-G = 9.81
-M = 2.71
+G = VehicleParams().gravity_mps2
+M = VehicleParams().mass_kg
 
 CALM = {
     'name': 'calm_test',
@@ -221,8 +219,8 @@ def test_scenario_return_failsafe_flies_home_climbs_and_lands_there():
     fault = {'type': 'node_kill', 'node': 'dob_altitude', 'start_s': 100.0, 'action': 'return',
              'loss_timeout_s': 0.3, 'min_alt_m': 2.5, 'return_speed_mps': 1.0}
     rig = Rig(calm(faults=[fault]))
-    assert rig.emu.params.offboard_loss_action == 'return'
-    assert rig.emu.params.offboard_loss_timeout_s == 0.3
+    assert rig.sim.autopilot.params.offboard_loss_action == 'return'
+    assert rig.sim.autopilot.params.offboard_loss_timeout_s == 0.3
     hover = (0.0, 0.0, 0.0, M * G)
     rig.run(1.3, setpoint=hover)
     rig.set_mode(6)
@@ -287,10 +285,11 @@ def test_outcome_on_the_pad_counts_trigger_and_searches():
     assert out['max_thrust_n'] >= M * G * 0.99
     assert out['horizontal_error_m'] < 0.1 and out['seed'] == 1
     assert out['scenario'] == 'calm_test'
-    for key in ('seed', 'scenario', 'landed_on_deck', 'success', 'crash', 'fallback',
-                'contact_kind', 'horizontal_error_m', 'touchdown_speed_mps', 'time_to_land_s',
-                'searches', 'max_thrust_n', 'reason'):
-        assert key in out
+    # one outcome record: the runner's RunResult fields minus what only the runner knows
+    assert set(out) == {f.name for f in dataclasses.fields(RunOutcome)}
+    assert set(out) == set(RunResult(seed=1, scenario='s').summary()) - {
+        'controller', 'link_degraded_s', 'link_latency_s'}
+    assert out['outcome'] == 'deck' and out['failsafes'] == 0 and out['failsafe_mode'] == ''
 
 
 def test_timeout_outcome_counts_from_the_trigger():
@@ -303,6 +302,8 @@ def test_timeout_outcome_counts_from_the_trigger():
     assert len(rig.outcomes) == 1
     out = rig.outcomes[0]
     assert out['reason'] == 'timeout' and not out['success'] and out['contact_kind'] == 'none'
+    assert out['detail'] == 'no touchdown within 1 s of the landing trigger'
+    assert out['outcome'] == 'hold'                  # hovering at the timeout, not a failure
     assert out['sim_time_s'] == pytest.approx(1.6, abs=0.01)
     assert out['horizontal_error_m'] is None and out['time_to_land_s'] is None
     rig.run(1.0)
@@ -333,20 +334,27 @@ def test_garbage_and_nan_from_the_wire_are_rejected_and_hover_continues():
     assert rig.sim.rejected['bad_dt'] == 2
 
 
-def test_autopilot_emulation_reenters_hold_at_the_current_position():
-    ap = AutopilotEmulation(AutopilotParams.for_scenario(calm()))
+def test_the_autopilot_holds_where_a_mode_is_entered_and_idles_when_disarmed():
     rig = Rig()
+    ap = rig.sim.autopilot
+    assert rig.sim.world.autopilot is ap and rig.emu.autopilot is ap   # one autopilot
+    assert ap.kind == 'hold' and ap.hold_point_m == rig.truth().position_m
+    hover = (0.0, 0.0, 0.0, M * G)
+    rig.run(1.3, setpoint=hover)
+    rig.set_mode(6)
+    rig.run(0.5, setpoint=(0.0, 0.1, 0.0, M * G / math.cos(0.1)))      # drift east
+    rig.set_mode(3)                                                  # POSCTL again
+    rig.run(0.02, setpoint=hover)
     tr = rig.truth()
-    ap.command('hold', tr, 0.01)
-    assert ap.target_m == tr.position_m
-    ap.release()
-    rig.run(0.5)
-    tr2 = rig.truth()
-    ap.command('hold', tr2, 0.01)
-    assert ap.target_m == tr2.position_m
-    assert ap.command('idle', tr2, 0.01)[3] == 0.0
+    assert ap.kind == 'hold' and math.dist(ap.hold_point_m, tr.position_m) < 0.02
+    rig.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 0, 21196,
+                              0, 0, 0, 0, 0)                         # forced disarm
+    rig.run(0.04)
+    assert ap.kind == 'idle' and rig.sim.world.vehicle.cmd_thrust == 0.0
     with pytest.raises(ValueError, match='land_speed_mps'):
         AutopilotParams(land_speed_mps=-1.0)
+    with pytest.raises(ValueError, match='offboard_loss_action'):
+        EmulatedAutopilot(AutopilotParams(offboard_loss_action='panic'))
 
 
 def test_step_cost_is_small():

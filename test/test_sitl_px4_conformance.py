@@ -121,7 +121,7 @@ class EmulatorLink(Link):
             if self.streaming and round(self.t * 100) % 2 == 0:
                 self.setpoint()
             emu = self.emu
-            descending = emu.command().kind in ('land', 'failsafe_land')
+            descending = emu.kind in ('land', 'failsafe_land')
             if self.in_air and descending:
                 self._land_since = self.t if self._land_since is None else self._land_since
                 if self.t - self._land_since >= 1.0:

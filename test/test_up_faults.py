@@ -14,6 +14,9 @@ import sys
 from conftest import isolated_env
 from deck_simulator.scenario import load_scenario
 from deckland.bag import bag_info
+import pytest
+
+pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
 
 DECKLAND = str(pathlib.Path(sys.executable).with_name('deckland'))
 

@@ -12,6 +12,9 @@ import time
 
 from conftest import isolated_env
 from deckland.bag import bag_info, is_recording, needs_reindex
+import pytest
+
+pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
 
 DECKLAND = str(pathlib.Path(sys.executable).with_name('deckland'))
 

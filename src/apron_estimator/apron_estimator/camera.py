@@ -1,26 +1,12 @@
 """Pinhole model of the down-looking IR camera: beacon pixel → relative position (pure).
 
-Paper (27)-(30): with the beacon image at ``(x_cam, y_cam)`` pixels from the image centre,
-half-width ``x_max`` and half-height ``y_max`` (pixels) and the height ``z``,
-
-    (29)  y_veh =  z · tan α_x / x_max · x_cam
-    (30)  x_veh = −z · tan α_y / y_max · y_cam
-
-in the paper's body frame (x forward, y to the *right*). (27) defines ``tan α_x = CA*/CB``,
-i.e. α is the *half* field of view, while Table 2 lists 60°/47°, the *full* FOV of the Pixy
-(FACTS.md). We therefore use ``α = fov/2`` of a configurable full FOV, which makes
-``tan α / x_max = 1 / f_x`` with the pinhole focal length ``f_x = (W/2) / tan(fov_x/2)``:
-(29)-(30) are exactly the pinhole model of a level camera.
-
-The default (``paper_exact=False``) model generalises them: the pixel's ray is rotated by the
-camera mount and the vehicle attitude into the world (ENU) and intersected with the
-horizontal deck plane ``height_above_deck_m`` below the body origin, which removes the tilt
-error of (29)-(30) (≈ 0.27 m at 10° tilt and 1.5 m). Frames: ``deckland_common.frames``.
-Default mount: optical x = body −y, optical y = body −x, optical z = body −z (image top toward
-the nose), which reproduces (29)-(30) at zero tilt once ``y_paper = −y_FLU``.
-
-(35) is replaced by the ENU/FLU rotation ``rel_ENU = Rz(ψ) · rel_FLU`` (see the README for
-the printed-vs-ours difference).
+Paper (29)-(30) with α = half of a configurable *full* FOV (Table 2 lists the Pixy's full
+60°/47°), i.e. the pinhole model of a level camera (``paper_exact=True``). The default
+generalises it: the pixel's ray is rotated by the camera mount and the vehicle attitude into
+ENU and intersected with the deck plane ``height_above_deck_m`` below the body origin (no
+tilt error: ≈ 0.27 m at 10° and 1.5 m with (29)-(30)). (35) is ``rel_ENU = Rz(ψ) rel_FLU``.
+Frames: :mod:`deckland_common.frames`; default mount: optical x = body −y, y = −x, z = −z.
+Decisions and tests: the package README (decisions 1-5).
 """
 
 from __future__ import annotations
@@ -30,7 +16,7 @@ import math
 
 from deckland_common.frames import body_to_world_xy, mat_vec, rot_body_to_world
 
-from apron_estimator import _validate as chk
+from deckland_common import validate as chk
 
 # Default mount, columns = optical x, y, z axes expressed in body FLU.
 _R_DEFAULT = ((0.0, -1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, -1.0))
@@ -57,17 +43,17 @@ class CameraParams:
 
     def __post_init__(self) -> None:
         o = 'CameraParams'
-        chk.in_range(o, 'fov_x_deg', self.fov_x_deg, 1.0, 170.0)
-        chk.in_range(o, 'fov_y_deg', self.fov_y_deg, 1.0, 170.0)
-        chk.positive(o, 'width_px', self.width_px)
-        chk.positive(o, 'height_px', self.height_px)
-        chk.in_range(o, 'cx_px', self.cx_px, 0.0, self.width_px)
-        chk.in_range(o, 'cy_px', self.cy_px, 0.0, self.height_px)
+        chk.in_range(f'{o}.fov_x_deg', self.fov_x_deg, 1.0, 170.0)
+        chk.in_range(f'{o}.fov_y_deg', self.fov_y_deg, 1.0, 170.0)
+        chk.positive(f'{o}.width_px', self.width_px)
+        chk.positive(f'{o}.height_px', self.height_px)
+        chk.in_range(f'{o}.cx_px', self.cx_px, 0.0, self.width_px)
+        chk.in_range(f'{o}.cy_px', self.cy_px, 0.0, self.height_px)
         for name in ('mount_x_m', 'mount_y_m', 'mount_z_m'):
-            chk.in_range(o, name, getattr(self, name), -2.0, 2.0)
+            chk.in_range(f'{o}.{name}', getattr(self, name), -2.0, 2.0)
         for name in ('mount_roll_rad', 'mount_pitch_rad', 'mount_yaw_rad'):
-            chk.in_range(o, name, getattr(self, name), -math.pi, math.pi)
-        chk.in_range(o, 'min_ray_down_cos', self.min_ray_down_cos, 0.0, 0.99)
+            chk.in_range(f'{o}.{name}', getattr(self, name), -math.pi, math.pi)
+        chk.in_range(f'{o}.min_ray_down_cos', self.min_ray_down_cos, 0.0, 0.99)
         if not isinstance(self.paper_exact, bool):
             raise ValueError(f'{o}.paper_exact must be a bool, got {self.paper_exact!r}')
 

@@ -17,13 +17,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 import math
 
+from deckland_common.contract import ApronState, PixyBlock
 from deckland_common.frames import wrap_pi
 
-from apron_estimator import _validate as chk
 from apron_estimator.camera import CameraModel, CameraParams
 from apron_estimator.horizontal import HorizontalParams, HorizontalTracker
-from apron_estimator.types import ApronState, PixyBlock
 from apron_estimator.vertical import VerticalFilter, VerticalParams
+from deckland_common import validate as chk
 
 _isfinite = math.isfinite
 
@@ -48,12 +48,12 @@ class EstimatorParams:
                           ('vertical', VerticalParams)):
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f'{o}.{name} must be a {cls.__name__}')
-        chk.integer_at_least(o, 'beacon_signature', self.beacon_signature, 0)
-        chk.positive(o, 'attitude_history_s', self.attitude_history_s)
-        chk.positive(o, 'max_attitude_gap_s', self.max_attitude_gap_s)
-        chk.positive(o, 'height_fallback_timeout_s', self.height_fallback_timeout_s)
-        chk.positive(o, 'visible_timeout_s', self.visible_timeout_s)
-        chk.non_negative(o, 'max_position_extrapolation_s', self.max_position_extrapolation_s)
+        chk.integer_at_least(f'{o}.beacon_signature', self.beacon_signature, 0)
+        chk.positive(f'{o}.attitude_history_s', self.attitude_history_s)
+        chk.positive(f'{o}.max_attitude_gap_s', self.max_attitude_gap_s)
+        chk.positive(f'{o}.height_fallback_timeout_s', self.height_fallback_timeout_s)
+        chk.positive(f'{o}.visible_timeout_s', self.visible_timeout_s)
+        chk.non_negative(f'{o}.max_position_extrapolation_s', self.max_position_extrapolation_s)
 
 
 class ApronEstimator:

@@ -1,34 +1,12 @@
 """Horizontal Kalman filter of the beacon's relative position and velocity (pure).
 
-Paper (31)-(34): state p = [x, v_x, y, v_y]ᵀ, ``p_{t+1} = A p_t + w`` with
-``A = [[1, t_s, 0, 0], [0, 1, 0, 0], [0, 0, 1, t_s], [0, 0, 0, 1]]`` (32), process noise
-``w = [0, w_x, 0, w_y]ᵀ`` on the velocities (31), measurement ``z = H p + v`` with
-``H = [[1, 0, 0, 0], [0, 0, 1, 0]]`` (34).
-
-A and H are block diagonal, and so are Q and R here, so the 4-state filter separates exactly
-into two independent 2-state filters [position, velocity], one per ENU axis; they are written
-out in scalar closed form (``test_estimator_horizontal`` proves every step equals filterpy's
-``KalmanFilter`` to 1e-9). Choices beyond the paper:
-
-* the state is beacon *minus* vehicle in ENU axes (not body axes), so vehicle yaw does not
-  rotate the state;
-* variable step ``dt`` (measurements at their exposure stamps): ``Q = diag(0, q·dt)`` keeps the
-  paper's velocity-only noise structure and makes it rate independent (q in m²/s³);
-* control input u = −(vehicle acceleration): ``x ← x + v dt + Δp``, ``v ← v + Δv`` with the
-  exact double integral of the zero-order-held acceleration between the two stamps
-  (:class:`AccelIntegrator`), like PX4's landing_target_estimator;
-* measurement noise σ = σ0 + k·h (h = height above the deck);
-* NIS gate (2-D χ²), acquisition after N consistent detections, loss after a timeout;
-* rival candidates (beyond the paper, README "False blobs"): persistent detections that the
-  track does not explain (a sun glint next to the beacon) are kept as offsets from the track.
-  While a confirmed rival is unresolved the target is *ambiguous*: :meth:`state` adds the
-  squared offset to the reported variance (the spread of the two-hypothesis mixture), so the
-  planner does not descend. A rival is resolved with the lidar: the beacon sits on the deck,
-  so the surface under it is higher than under a blob beside the deck. The tracker records
-  the lowest surface *level* (heave-free: the vertical filter's surface steps) seen while the
-  lidar spot is on each hypothesis (README, decisions 13-13c); an unvisited rival
-  is *probed* (the track is moved onto it so that the planner flies there), and the lower
-  hypothesis is rejected (the track switches to the higher one if needed).
+Paper (31)-(34): A, H (and our Q, R) are block diagonal, so the 4-state filter is exactly two
+scalar closed-form 2-state filters, one per ENU axis (equal to filterpy's ``KalmanFilter`` to
+1e-9). Beyond the paper: beacon-minus-vehicle in ENU axes, a variable step with
+``Q = diag(0, q dt)``, the control input u = −(vehicle acceleration) integrated exactly for a
+held input (:class:`AccelIntegrator`), σ = σ0 + k h, a 2-D χ² NIS gate, acquisition and loss,
+and rival hypotheses for false IR blobs, told apart by the lidar's surface level under each
+(:class:`HorizontalTracker`). Decisions 6-9 and 12-13c of the package README.
 """
 
 from __future__ import annotations
@@ -37,7 +15,7 @@ from bisect import bisect_right
 from dataclasses import dataclass
 import math
 
-from apron_estimator import _validate as chk
+from deckland_common import validate as chk
 
 _UNKNOWN_VAR_M2 = 1.0e4  # reported variance before the first detection
 
@@ -256,22 +234,22 @@ class HorizontalParams:
 
     def __post_init__(self) -> None:
         o = 'HorizontalParams'
-        chk.non_negative(o, 'accel_psd_m2ps3', self.accel_psd_m2ps3)
-        chk.positive(o, 'sigma0_m', self.sigma0_m)
-        chk.non_negative(o, 'sigma_per_m', self.sigma_per_m)
-        chk.positive(o, 'nis_gate', self.nis_gate)
-        chk.integer_at_least(o, 'acquire_hits', self.acquire_hits, 1)
-        chk.positive(o, 'lost_timeout_s', self.lost_timeout_s)
-        chk.positive(o, 'init_vel_sigma_mps', self.init_vel_sigma_mps)
+        chk.non_negative(f'{o}.accel_psd_m2ps3', self.accel_psd_m2ps3)
+        chk.positive(f'{o}.sigma0_m', self.sigma0_m)
+        chk.non_negative(f'{o}.sigma_per_m', self.sigma_per_m)
+        chk.positive(f'{o}.nis_gate', self.nis_gate)
+        chk.integer_at_least(f'{o}.acquire_hits', self.acquire_hits, 1)
+        chk.positive(f'{o}.lost_timeout_s', self.lost_timeout_s)
+        chk.positive(f'{o}.init_vel_sigma_mps', self.init_vel_sigma_mps)
         if not isinstance(self.use_accel_input, bool):
             raise ValueError(f'{o}.use_accel_input must be a bool, got {self.use_accel_input!r}')
-        chk.positive(o, 'accel_history_s', self.accel_history_s)
+        chk.positive(f'{o}.accel_history_s', self.accel_history_s)
         for name in ('rival_gate_m', 'rival_timeout_s', 'rejected_rival_timeout_s',
                      'ambiguity_min_sep_m', 'verify_radius_m', 'verify_dwell_s',
                      'deck_rise_m'):
-            chk.positive(o, name, getattr(self, name))
-        chk.integer_at_least(o, 'rival_confirm_hits', self.rival_confirm_hits, 1)
-        chk.integer_at_least(o, 'max_rivals', self.max_rivals, 0)
+            chk.positive(f'{o}.{name}', getattr(self, name))
+        chk.integer_at_least(f'{o}.rival_confirm_hits', self.rival_confirm_hits, 1)
+        chk.integer_at_least(f'{o}.max_rivals', self.max_rivals, 0)
         if self.accel_history_s < self.lost_timeout_s:
             raise ValueError(f'{o}.accel_history_s must be >= lost_timeout_s')
 

@@ -1,66 +1,23 @@
 """Pure conversions from the vehicle/camera topics to the estimator's inputs (no rclpy).
 
-The ROS node (:mod:`apron_estimator.node`) only unpacks messages into plain numbers and calls
-these functions; everything that can be wrong about a conversion lives here and is unit
-tested without ROS. Frames are those of :mod:`deckland_common.frames` (world ENU, body FLU).
-
-* :func:`attitude_from_quaternion` — ``sensor_msgs/Imu.orientation`` (ENU←FLU, REP-145) to the
-  Z-Y-X Euler angles the estimator's attitude history wants (used by the camera model
-  (27)-(30) and the heading rotation (35)).
-* :func:`world_accel_from_specific_force` — the IMU's specific force in FLU (REP-145: at rest
-  it reads ``(0, 0, +g)``) to the vehicle acceleration in ENU with gravity removed,
-  ``a = R f − (0, 0, g)``, the control input of the horizontal KF and of the vertical filter.
-* :func:`lidar_range` — ``sensor_msgs/Range`` (REP-117: ``+inf`` = no return, ``-inf`` = too
-  close) to ``range_m | None``.
-* :func:`blocks_from_cloud` — the ``pixy/blocks`` PointCloud layout of docs/interfaces.md to a
-  list of :class:`~apron_estimator.types.PixyBlock`, or ``None`` when the channels are
-  inconsistent.
-* :class:`LocalPositionPairer` — joins ``vehicle/odom`` (position) and ``vehicle/velocity``
-  (ENU velocity) published with the same stamp into one ``on_local_position`` call.
+:func:`world_accel_from_specific_force` (IMU specific force FLU → ENU acceleration, gravity
+removed), :func:`lidar_range` (``sensor_msgs/Range``, REP-117, → ``range_m | None``),
+:func:`blocks_from_cloud` (the ``pixy/blocks`` PointCloud layout of docs/interfaces.md →
+blocks) and :class:`LocalPositionPairer` (``vehicle/odom`` + ``vehicle/velocity`` of one
+stamp → one local-position sample). Orientation → Euler: :mod:`deckland_common.frames`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 import math
 
-from deckland_common.frames import quaternion_to_euler
-
-from apron_estimator.types import PixyBlock
+from deckland_common.contract import PixyBlock
 
 _isfinite = math.isfinite
 
-#: Largest accepted | |q| − 1 | of an orientation quaternion before it is refused.
-QUATERNION_NORM_TOLERANCE = 0.05
-
 Vec3 = tuple[float, float, float]
-
-
-def normalised_quaternion(w: float, x: float, y: float, z: float,
-                          tolerance: float = QUATERNION_NORM_TOLERANCE
-                          ) -> tuple[float, float, float, float] | None:
-    """(w, x, y, z) scaled to unit norm, or None if not finite or | |q| − 1 | > tolerance."""
-    if not (_isfinite(w) and _isfinite(x) and _isfinite(y) and _isfinite(z)):
-        return None
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    if abs(n - 1.0) > tolerance:
-        return None
-    return w / n, x / n, y / n, z / n
-
-
-def attitude_from_quaternion(w: float, x: float, y: float, z: float,
-                             tolerance: float = QUATERNION_NORM_TOLERANCE
-                             ) -> tuple[float, float, float] | None:
-    """Orientation of ``base_link`` (FLU) in ``map`` (ENU) → (roll, pitch, yaw) in rad, Z-Y-X.
-
-    None when the quaternion is not finite or not (nearly) unit; see
-    :func:`normalised_quaternion`.
-    """
-    q = normalised_quaternion(w, x, y, z, tolerance)
-    if q is None:
-        return None
-    return quaternion_to_euler(*q)
 
 
 def rotate_body_to_world(q: tuple[float, float, float, float], v: Sequence[float]) -> Vec3:
@@ -115,7 +72,7 @@ def lidar_range(range_m: float, min_range_m: float, max_range_m: float) -> float
 
 
 def blocks_from_cloud(xs: Sequence[float], ys: Sequence[float],
-                      channels: dict[str, Sequence[float]]) -> list[PixyBlock] | None:
+                      channels: Mapping[str, Sequence[float]]) -> list[PixyBlock] | None:
     """The ``pixy/blocks`` PointCloud → blocks, or None when the layout is inconsistent.
 
     One point per block (``x`` = x_px, ``y`` = y_px) and the channels ``signature``,

@@ -1,29 +1,12 @@
 """Vertical state relative to the (heaving) surface below: a 5-state Kalman filter (pure).
 
-Beyond the paper (which feeds the raw LidarLite range to the altitude loop, Figure 7c).
-State ``x = [z_v, v_v, z_s, v_s, a_s]``: vehicle altitude and vertical speed (world, body
-origin), surface height, speed and acceleration. Model, with the vehicle's vertical
-acceleration a (ENU, gravity removed) as a zero-order-held input:
-
-    ż_v = v_v, v̇_v = a + w_v;    ż_s = v_s, v̇_s = a_s, ȧ_s = −a_s/τ + w_s   (Singer)
-
-Discrete: z_v ← z_v + v_v dt + Δp, v_v ← v_v + Δv (exact integral of the held input),
-z_s ← z_s + v_s dt + a_s dt²/2, v_s ← v_s + a_s dt, a_s ← φ a_s with φ = exp(−dt/τ);
-Q_v = q_v [[dt³/3, dt²/2], [dt²/2, dt]], Q_s = q_s [[dt⁵/20, dt⁴/8, dt³/6], [·, dt³/3, dt²/2],
-[·, ·, dt]] with q_s = 2σ_a²/τ and Q_s[a,a] = σ_a²(1 − φ²) (the stationary variance).
-``surface_model='velocity'`` drops a_s (a ≡ 0, white surface acceleration with the same
-low-frequency PSD 2σ_a²τ): the two-state model for comparison.
-
-Measurements (scalar updates, P ← P − c cᵀ/S with c = P Hᵀ):
-lidar h = range·cosφ·cosθ = z_v − z_s (H = [1, 0, −1, 0, 0]); altitude z = z_v; optionally
-vertical speed v = v_v.
-
-Surface jumps (the deck edge passing under the lidar) are *re-based*, never filtered: a lidar
-innovation beyond max(jump_threshold_m, jump_sigma·√S) is held back; ``jump_confirm`` such
-samples in a row of the same sign and within ``jump_consistency_m`` of each other re-base
-z_s := z_v − h averaged over the run (v_s, a_s := 0, their covariance re-inflated),
-increment ``surface_epoch``.
-A shorter run is a spike and is discarded (counted in ``rejected['outlier']``).
+Beyond the paper (which feeds the raw lidar range to the altitude loop, Figure 7c): state
+``[z_v, v_v, z_s, v_s, a_s]`` (vehicle altitude and speed, surface height, speed and a Singer
+acceleration, τ), the vehicle's acceleration as a held input integrated exactly; scalar
+updates from the lidar (h = range cosφ cosθ = z_v − z_s), the altitude and optionally v_z.
+Surface jumps (a deck edge under the lidar) are re-based, never filtered: ``jump_confirm``
+consistent innovations beyond the threshold move z_s and count ``surface_epoch``; shorter
+runs are spikes. Equations, Q and the re-base: package README, decisions 10-11 and 10b.
 """
 
 from __future__ import annotations
@@ -32,9 +15,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 import math
 
-from apron_estimator import _validate as chk
+from deckland_common.contract import VerticalState
+
 from apron_estimator.horizontal import AccelIntegrator
-from apron_estimator.types import VerticalState
+from deckland_common import validate as chk
 
 _UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
 _SYM = tuple(tuple(_UPPER.index((min(i, j), max(i, j))) for j in range(5)) for i in range(5))
@@ -72,11 +56,11 @@ class VerticalParams:
                      'jump_sigma', 'jump_consistency_m', 'jump_window_s',
                      'rebase_vs_sigma_mps', 'altitude_gate', 'lidar_timeout_s',
                      'range_max_m', 'max_tilt_rad'):
-            chk.positive(o, name, getattr(self, name))
-        chk.non_negative(o, 'vehicle_accel_psd_m2ps3', self.vehicle_accel_psd_m2ps3)
-        chk.non_negative(o, 'range_min_m', self.range_min_m)
-        chk.non_negative(o, 'late_tolerance_s', self.late_tolerance_s)
-        chk.integer_at_least(o, 'jump_confirm', self.jump_confirm, 1)
+            chk.positive(f'{o}.{name}', getattr(self, name))
+        chk.non_negative(f'{o}.vehicle_accel_psd_m2ps3', self.vehicle_accel_psd_m2ps3)
+        chk.non_negative(f'{o}.range_min_m', self.range_min_m)
+        chk.non_negative(f'{o}.late_tolerance_s', self.late_tolerance_s)
+        chk.integer_at_least(f'{o}.jump_confirm', self.jump_confirm, 1)
         if self.range_min_m >= self.range_max_m:
             raise ValueError(f'{o}.range_min_m must be < range_max_m')
         if self.surface_model not in ('accel', 'velocity'):

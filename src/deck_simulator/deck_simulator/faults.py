@@ -1,23 +1,12 @@
 """Fault injection for the simulated world (pure, deterministic from the run seed).
 
-A scenario's ``faults:`` list holds entries ``{type: ..., start_s: .., end_s: .., ...}``;
-:func:`parse_faults` turns them into the frozen specs below (strict validation, the key path in
-every message). :class:`FaultSet` is the run-time side used by :class:`deck_simulator.world.World`:
-it answers "what does fault X do to this reading at time t" for the camera, the lidar, the GPS,
-the wind and the command link. Every random draw of a fault comes from its own stream
-``random.Random(f'{seed}:fault:{index}:{type}')``, so a fault never shifts the world's other
-noise streams (a run with a lidar fault has the same camera noise as without it), and a
-scenario without faults builds no ``FaultSet`` at all (bit-identical to before).
-
-Windows: every fault is active for ``start_s <= t < end_s`` (world time, the runner's landing
-trigger is t = 0; ``end_s`` defaults to +inf; ``duration_s`` may be given instead of ``end_s``).
-With ``trigger_height_m`` the window instead opens the first time at or after ``start_s`` that
-the vehicle's true height above the surface below drops under that height, and lasts
-``end_s - start_s`` — e.g. "a 4 m/s gust hitting at half a metre" regardless of how long the
-approach took for this seed.
-
-Beyond the paper (which reports no fault experiments): the paper's disturbance δ of (3) must be
-bounded (Assumption 1); ``gust_step`` is a bounded step in δ through the drag model.
+A scenario's ``faults:`` entries become frozen specs (:func:`parse_faults`, strict validation
+naming the key path); :class:`FaultSet` answers at run time what each fault does to the camera,
+the lidar, the GPS and the wind at time t, and holds the windows the MAVLink link model
+(:mod:`deck_simulator.link`) applies. A fault draws from its own stream
+``random.Random(f'{seed}:fault:{index}:{type}')``, so it never shifts the world's other noise;
+without faults no ``FaultSet`` is built. A window is ``start_s <= t < end_s``, or opens when the
+true height above the surface first drops under ``trigger_height_m``. See the package README.
 """
 
 from __future__ import annotations
@@ -27,19 +16,12 @@ import math
 import random
 from typing import Any, ClassVar
 
+from deckland_common.validate import in_range, is_finite_number, require
+
 NODE_NAMES = ('apron_estimator', 'dob_altitude', 'landing_planner', 'mavlink_bridge',
               'pixy_driver')
 # nodes on the command path: if one dies, no attitude/thrust commands reach the autopilot
 COMMAND_PATH_NODES = ('apron_estimator', 'dob_altitude', 'landing_planner', 'mavlink_bridge')
-
-
-def _finite(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _req(cond: bool, name: str, rule: str, value: Any) -> None:
-    if not cond:
-        raise ValueError(f'{name} {rule}, got {value!r}')
 
 
 # --- specs ---------------------------------------------------------------------------------
@@ -54,14 +36,14 @@ class FaultSpec:
     trigger_height_m: float | None = None   # open the window when height < this (after start_s)
 
     def __post_init__(self) -> None:
-        _req(_finite(self.start_s) and self.start_s >= 0, 'start_s', 'must be >= 0',
-             self.start_s)
-        _req(isinstance(self.end_s, int | float) and not isinstance(self.end_s, bool)
-             and not math.isnan(self.end_s) and self.end_s > self.start_s, 'end_s',
-             f'must be > start_s ({self.start_s})', self.end_s)
+        require(is_finite_number(self.start_s) and self.start_s >= 0, 'start_s', 'must be >= 0',
+                self.start_s)
+        end_ok = (isinstance(self.end_s, int | float) and not isinstance(self.end_s, bool)
+                  and not math.isnan(self.end_s) and self.end_s > self.start_s)
+        require(end_ok, 'end_s', f'must be > start_s ({self.start_s})', self.end_s)
         if self.trigger_height_m is not None:
-            _req(_finite(self.trigger_height_m) and self.trigger_height_m > 0,
-                 'trigger_height_m', 'must be > 0', self.trigger_height_m)
+            require(is_finite_number(self.trigger_height_m) and self.trigger_height_m > 0,
+                    'trigger_height_m', 'must be > 0', self.trigger_height_m)
         self._check()
 
     def _check(self) -> None:   # per-type parameter checks
@@ -70,10 +52,6 @@ class FaultSpec:
     @property
     def duration_s(self) -> float:
         return self.end_s - self.start_s
-
-
-def _prob(name: str, v: Any) -> None:
-    _req(_finite(v) and 0.0 <= v <= 1.0, name, 'must be in [0, 1]', v)
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,12 +71,12 @@ class CameraDropout(FaultSpec):
     burst_length_s: float = 0.3     # bursts: every frame empty for this long after a start
 
     def _check(self) -> None:
-        _req(self.mode in ('window', 'bursts'), 'mode', "must be 'window' or 'bursts'",
-             self.mode)
-        _req(_finite(self.burst_rate_hz) and self.burst_rate_hz > 0, 'burst_rate_hz',
-             'must be > 0', self.burst_rate_hz)
-        _req(_finite(self.burst_length_s) and self.burst_length_s > 0, 'burst_length_s',
-             'must be > 0', self.burst_length_s)
+        require(self.mode in ('window', 'bursts'), 'mode', "must be 'window' or 'bursts'",
+                self.mode)
+        require(is_finite_number(self.burst_rate_hz) and self.burst_rate_hz > 0, 'burst_rate_hz',
+                'must be > 0', self.burst_rate_hz)
+        require(is_finite_number(self.burst_length_s) and self.burst_length_s > 0,
+                'burst_length_s', 'must be > 0', self.burst_length_s)
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,23 +100,27 @@ class FalseBlobs(FaultSpec):
     size_m: float = 0.08                        # apparent size of a world-point blob
 
     def _check(self) -> None:
-        _req(self.mode in ('flicker', 'persistent'), 'mode',
-             "must be 'flicker' or 'persistent'", self.mode)
+        require(self.mode in ('flicker', 'persistent'), 'mode',
+                "must be 'flicker' or 'persistent'", self.mode)
         if self.mode == 'persistent':
-            _prob('rate_per_frame', self.rate_per_frame)
-            _req(self.position_m is not None or self.near_beacon_m is not None, 'position_m',
-                 'or near_beacon_m is required for a persistent blob', self.position_m)
+            in_range('rate_per_frame', self.rate_per_frame, 0, 1)
+            require(self.position_m is not None or self.near_beacon_m is not None, 'position_m',
+                    'or near_beacon_m is required for a persistent blob',
+                    self.position_m)
         else:
-            _req(_finite(self.rate_per_frame) and 0 < self.rate_per_frame <= 10,
-                 'rate_per_frame', 'must be in (0, 10] blobs per frame', self.rate_per_frame)
-            _req(self.position_m is None, 'position_m', 'is only for mode persistent',
-                 self.position_m)
+            require(is_finite_number(self.rate_per_frame) and 0 < self.rate_per_frame <= 10,
+                    'rate_per_frame', 'must be in (0, 10] blobs per frame',
+                    self.rate_per_frame)
+            require(self.position_m is None, 'position_m', 'is only for mode persistent',
+                    self.position_m)
         if self.near_beacon_m is not None:
-            _req(_finite(self.near_beacon_m) and self.near_beacon_m >= 0, 'near_beacon_m',
-                 'must be >= 0', self.near_beacon_m)
+            require(is_finite_number(self.near_beacon_m) and self.near_beacon_m >= 0,
+                    'near_beacon_m', 'must be >= 0', self.near_beacon_m)
         if self.bearing_rad is not None:
-            _req(_finite(self.bearing_rad), 'bearing_rad', 'must be finite', self.bearing_rad)
-        _req(_finite(self.size_m) and self.size_m > 0, 'size_m', 'must be > 0', self.size_m)
+            require(is_finite_number(self.bearing_rad), 'bearing_rad', 'must be finite',
+                    self.bearing_rad)
+        require(is_finite_number(self.size_m) and self.size_m > 0, 'size_m', 'must be > 0',
+                self.size_m)
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,7 +131,7 @@ class LidarDropout(FaultSpec):
     probability: float = 1.0
 
     def _check(self) -> None:
-        _prob('probability', self.probability)
+        in_range('probability', self.probability, 0, 1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,11 +144,11 @@ class LidarOutliers(FaultSpec):
     direction: str = 'both'          # short | long | both (sign drawn 50/50)
 
     def _check(self) -> None:
-        _prob('probability', self.probability)
-        _req(_finite(self.magnitude_m) and self.magnitude_m > 0, 'magnitude_m', 'must be > 0',
-             self.magnitude_m)
-        _req(self.direction in ('short', 'long', 'both'), 'direction',
-             "must be 'short', 'long' or 'both'", self.direction)
+        in_range('probability', self.probability, 0, 1)
+        require(is_finite_number(self.magnitude_m) and self.magnitude_m > 0, 'magnitude_m',
+                'must be > 0', self.magnitude_m)
+        require(self.direction in ('short', 'long', 'both'), 'direction',
+                "must be 'short', 'long' or 'both'", self.direction)
 
 
 @dataclass(frozen=True, slots=True)
@@ -179,11 +161,12 @@ class GpsJump(FaultSpec):
     vertical_m: float = 0.0
 
     def _check(self) -> None:
-        _req(_finite(self.magnitude_m) and self.magnitude_m >= 0, 'magnitude_m',
-             'must be >= 0', self.magnitude_m)
+        require(is_finite_number(self.magnitude_m) and self.magnitude_m >= 0, 'magnitude_m',
+                'must be >= 0', self.magnitude_m)
         if self.bearing_rad is not None:
-            _req(_finite(self.bearing_rad), 'bearing_rad', 'must be finite', self.bearing_rad)
-        _req(_finite(self.vertical_m), 'vertical_m', 'must be finite', self.vertical_m)
+            require(is_finite_number(self.bearing_rad), 'bearing_rad', 'must be finite',
+                    self.bearing_rad)
+        require(is_finite_number(self.vertical_m), 'vertical_m', 'must be finite', self.vertical_m)
 
 
 @dataclass(frozen=True, slots=True)
@@ -194,8 +177,8 @@ class GustStep(FaultSpec):
     wind_mps: tuple[float, float, float] = (4.0, 0.0, 0.0)
 
     def _check(self) -> None:
-        _req(len(self.wind_mps) == 3 and all(_finite(w) for w in self.wind_mps), 'wind_mps',
-             'must be 3 finite numbers', self.wind_mps)
+        require(len(self.wind_mps) == 3 and all(is_finite_number(w) for w in self.wind_mps),
+                'wind_mps', 'must be 3 finite numbers', self.wind_mps)
 
 
 @dataclass(frozen=True, slots=True)
@@ -213,18 +196,19 @@ class _LinkFault(FaultSpec):
     #                                  for OFFBOARD again); False: PX4 stays in its failsafe
 
     def _check(self) -> None:
-        _req(_finite(self.loss_timeout_s) and self.loss_timeout_s > 0, 'loss_timeout_s',
-             'must be > 0', self.loss_timeout_s)
-        _req(_finite(self.hold_s) and self.hold_s >= 0, 'hold_s', 'must be >= 0', self.hold_s)
-        _req(self.action in ('land', 'return'), 'action', "must be 'land' or 'return'",
-             self.action)
+        require(is_finite_number(self.loss_timeout_s) and self.loss_timeout_s > 0,
+                'loss_timeout_s', 'must be > 0', self.loss_timeout_s)
+        require(is_finite_number(self.hold_s) and self.hold_s >= 0, 'hold_s', 'must be >= 0',
+                self.hold_s)
+        require(self.action in ('land', 'return'), 'action', "must be 'land' or 'return'",
+                self.action)
         for name in ('land_speed_mps', 'climb_speed_mps', 'return_speed_mps'):
             v = getattr(self, name)
-            _req(_finite(v) and 0 < v <= 5.0, name, 'must be in (0, 5] m/s', v)
-        _req(_finite(self.min_alt_m) and self.min_alt_m >= 0, 'min_alt_m', 'must be >= 0',
-             self.min_alt_m)
-        _req(isinstance(self.reengage_offboard, bool), 'reengage_offboard',
-             'must be true or false', self.reengage_offboard)
+            require(is_finite_number(v) and 0 < v <= 5.0, name, 'must be in (0, 5] m/s', v)
+        require(is_finite_number(self.min_alt_m) and self.min_alt_m >= 0, 'min_alt_m',
+                'must be >= 0', self.min_alt_m)
+        require(isinstance(self.reengage_offboard, bool), 'reengage_offboard',
+                'must be true or false', self.reengage_offboard)
 
 
 @dataclass(frozen=True, slots=True)
@@ -236,7 +220,7 @@ class MavlinkLoss(_LinkFault):
 
     def _check(self) -> None:
         _LinkFault._check(self)
-        _prob('probability', self.probability)
+        in_range('probability', self.probability, 0, 1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,8 +232,8 @@ class MavlinkLatency(_LinkFault):
 
     def _check(self) -> None:
         _LinkFault._check(self)
-        _req(_finite(self.latency_s) and 0 < self.latency_s <= 10, 'latency_s',
-             'must be in (0, 10]', self.latency_s)
+        require(is_finite_number(self.latency_s) and 0 < self.latency_s <= 10, 'latency_s',
+                'must be in (0, 10]', self.latency_s)
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,7 +253,7 @@ class NodeKill(_LinkFault):
 
     def _check(self) -> None:
         _LinkFault._check(self)
-        _req(self.node in NODE_NAMES, 'node', f'must be one of {list(NODE_NAMES)}', self.node)
+        require(self.node in NODE_NAMES, 'node', f'must be one of {list(NODE_NAMES)}', self.node)
 
 
 FAULT_TYPES: dict[str, type[FaultSpec]] = {c.type: c for c in (
@@ -295,7 +279,7 @@ def _value(key: str, value: Any, where: str) -> Any:
         return value
     if key in _TUPLE_FIELDS:
         n = _TUPLE_FIELDS[key]
-        if not isinstance(value, list | tuple) or not all(_finite(v) for v in value):
+        if not isinstance(value, list | tuple) or not all(is_finite_number(v) for v in value):
             raise ValueError(f'{where} must be a list of finite numbers, got {value!r}')
         if key == 'wind_mps' and len(value) == 2:
             value = (*value, 0.0)
@@ -304,7 +288,7 @@ def _value(key: str, value: Any, where: str) -> Any:
         return tuple(float(v) for v in value)
     if key == 'end_s' and isinstance(value, int | float) and value == math.inf:
         return math.inf
-    if not _finite(value):
+    if not is_finite_number(value):
         raise ValueError(f'{where} must be a finite number, got {value!r}')
     return float(value)
 
@@ -426,10 +410,8 @@ class FaultSet:
         self.has_lidar = bool(self.lidar_drop or self.lidar_spikes)
         self.has_link = bool(self.link_cut or self.link_loss or self.link_latency)
         link = self.link_cut + self.link_loss + self.link_latency
-        # failsafe parameters (the emulated autopilot's): the first link fault's
+        # the autopilot's failsafe settings (deck_simulator.autopilot): the first link fault's
         self.link_spec: _LinkFault = link[0].spec if link else MavlinkLinkLoss()
-        self.loss_timeout_s = self.link_spec.loss_timeout_s
-        self.hold_s = self.link_spec.hold_s
 
     @staticmethod
     def _bursts(a: _Active, s: CameraDropout) -> tuple[tuple[float, float], ...]:
@@ -547,22 +529,6 @@ class FaultSet:
                 wy += a.step[1]
                 wz += a.step[2]
         return (wx, wy, wz) if hit else None
-
-    # --- command link ----------------------------------------------------------------------
-
-    def link_fate(self, t: float) -> float | None:
-        """None if a command sent at t is lost, else its delay in seconds (0 = now)."""
-        for a in self.link_cut:
-            if a.on <= t < a.off:
-                return None
-        for a in self.link_loss:
-            if a.on <= t < a.off and a.rng.random() < a.spec.probability:
-                return None
-        delay = 0.0
-        for a in self.link_latency:
-            if a.on <= t < a.off:
-                delay = max(delay, a.spec.latency_s)
-        return delay
 
 
 def _poisson(rng: random.Random, lam: float) -> int:

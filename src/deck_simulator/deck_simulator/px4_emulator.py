@@ -1,47 +1,22 @@
-"""A PX4-like autopilot for the simulator: the MAVLink side the bridge talks to (no rclpy).
+"""A PX4-like MAVLink endpoint for the simulator: the autopilot's wire side (no rclpy).
 
-:class:`Px4Emulator` speaks MAVLink 2 (pymavlink's ``common`` dialect, encoder and decoder used
-directly, no ``mavutil`` global state) over a byte transport: a loopback UDP socket by default
-(:class:`UdpTransport`, bound to 127.0.0.1 like PX4 SITL, sending to the companion's port and
-answering whoever last sent it a valid packet) or an in-memory pair (:class:`MemoryLink`).
-
-It is stepped with the simulator's time ``t_s`` (never the wall clock):
-
-``update(t_s)``
-    read every pending packet and act on it: COMMAND_LONG (SET_MESSAGE_INTERVAL,
-    COMPONENT_ARM_DISARM, DO_SET_MODE, all answered with COMMAND_ACK), TIMESYNC requests
-    (answered at once like PX4: ``tc1`` = emulator time in ns, ``ts1`` echoed), SET_ATTITUDE_TARGET
-    (decoded back to ENU/FLU angles and newtons with the bridge's own
-    :class:`~mavlink_bridge.conversions.ThrustCalibration`), HEARTBEAT, PARAM_REQUEST_READ /
-    PARAM_SET; then run the mode logic with PX4 v1.16's personality (:class:`Px4Personality`):
-    OFFBOARD is accepted with one setpoint younger than ``COM_OF_LOSS_T`` (always while
-    disarmed); if the setpoints stop for ``offboard_loss_timeout_s`` (``COM_OF_LOSS_T``, 1.0 s)
-    the failsafe switches to AUTO.LAND, AUTO.LOITER, AUTO.RTL or (PX4's default, Position
-    without RC) a descent in POSCTL, and :attr:`failsafe_active` is set; auto-disarm after
-    landing (``COM_DISARM_LAND``) or when never taking off (``COM_DISARM_PRFLT``).
-``publish_state(t_s, ...)``
-    the simulator's truth/sensor values; streams HEARTBEAT, ATTITUDE, LOCAL_POSITION_NED,
-    DISTANCE_SENSOR (cm, orientation 25), HIGHRES_IMU / SCALED_IMU and EXTENDED_SYS_STATE at the
-    rates the companion asked for.
-``command()``
-    what the vehicle should fly now, a :class:`VehicleCommand` named tuple
-    ``(kind, roll_rad, pitch_rad, yaw_rad, thrust_n)`` with kind ``'idle'`` (disarmed),
-    ``'offboard'`` (the last setpoint), ``'hold'`` (level, vertical speed 0), ``'land'`` or
-    ``'failsafe_land'`` (level, descend at ``land_speed_mps``), ``'failsafe_return'`` (AUTO.RTL:
-    fly to :attr:`home_m`, where OFFBOARD was engaged, then land there — the simulator node's
-    ``AutopilotEmulation`` flies it; the thrust here only holds the vertical speed at 0).
-    Hold/land thrust comes from a simple vertical-speed loop on the last published state,
-    tilt-compensated.
+:class:`Px4Emulator` speaks MAVLink 2 (pymavlink's ``common`` dialect, no ``mavutil`` global
+state) over a byte transport (:mod:`deck_simulator.transport`) as PX4 presents itself, and
+hands what it decodes to an :class:`~deck_simulator.autopilot.EmulatedAutopilot` (modes,
+offboard acceptance, failsafes; the world flies it): ``update(t_s)`` reads the wire
+(SET_ATTITUDE_TARGET, COMMAND_LONG with PX4 v1.16's ACKs, TIMESYNC, PARAM_REQUEST_READ /
+PARAM_SET of PX4's parameters, HEARTBEAT); ``publish_state(t_s, ...)`` streams HEARTBEAT,
+ATTITUDE, LOCAL_POSITION_NED, DISTANCE_SENSOR, HIGHRES_IMU / SCALED_IMU, EXTENDED_SYS_STATE.
+Stepped with the simulator's time, never the wall clock.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import math
-import socket
-from typing import NamedTuple
 
 from deckland_common.frames import enu_to_ned, euler_enu_flu_to_ned_frd, flu_to_frd
+from deckland_common.validate import in_range, integer_at_least, require
 from mavlink_bridge.conversions import (
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
@@ -58,6 +33,11 @@ from mavlink_bridge.conversions import (
 from mavlink_bridge.signing import verify_signature_first
 from pymavlink.dialects.v20 import common as mavlink
 
+from deck_simulator import autopilot as ap_modes
+from deck_simulator.autopilot import AttitudeSetpoint, AutopilotParams, EmulatedAutopilot
+from deck_simulator.transport import MemoryLink, UdpTransport
+from deck_simulator.vehicle import VehicleParams
+
 Vec3 = tuple[float, float, float]
 
 MODE_POSCTL = (3, 0)
@@ -66,12 +46,15 @@ MODE_OFFBOARD = (6, 0)
 MODE_AUTO_LOITER = (4, 3)
 MODE_AUTO_RTL = (4, 5)
 MODE_AUTO_LAND = (4, 6)
-_ACCEPTED_MODES = (MODE_POSCTL, MODE_ALTCTL, MODE_OFFBOARD, MODE_AUTO_LOITER, MODE_AUTO_LAND)
+#: PX4 (main, sub) custom mode of each generic autopilot mode
+PX4_MODES = {ap_modes.POSITION: MODE_POSCTL, ap_modes.ALTITUDE: MODE_ALTCTL,
+             ap_modes.OFFBOARD: MODE_OFFBOARD, ap_modes.HOLD: MODE_AUTO_LOITER,
+             ap_modes.RETURN: MODE_AUTO_RTL, ap_modes.LAND: MODE_AUTO_LAND}
+#: the modes a companion may ask for with DO_SET_MODE
+_ACCEPTED_MODES = {MODE_POSCTL: ap_modes.POSITION, MODE_ALTCTL: ap_modes.ALTITUDE,
+                   MODE_OFFBOARD: ap_modes.OFFBOARD, MODE_AUTO_LOITER: ap_modes.HOLD,
+                   MODE_AUTO_LAND: ap_modes.LAND}
 FORCE_DISARM_MAGIC = 21196
-#: offboard_loss_action → the mode PX4 switches to (COM_OBL_RC_ACT); 'position' is PX4's
-#: default 0: without RC an emergency descent while the heartbeat reads POSCTL
-_LOSS_MODES = {'land': MODE_AUTO_LAND, 'return': MODE_AUTO_RTL, 'hold': MODE_AUTO_LOITER,
-               'position': MODE_POSCTL}
 _LOSS_ACTION_VALUE = {v: k for k, v in PX4_OFFBOARD_LOSS_ACTIONS.items()}
 MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
@@ -88,19 +71,16 @@ DEFAULT_INTERVALS_S = {
 }
 
 
-class VehicleCommand(NamedTuple):
-    """What the simulated vehicle should do: ``world.set_command(roll, pitch, yaw, thrust)``."""
-
-    kind: str        # 'idle' | 'offboard' | 'hold' | 'land' | 'failsafe_land' | 'failsafe_return'
-    roll_rad: float
-    pitch_rad: float
-    yaw_rad: float
-    thrust_n: float
+def vehicle_thrust_calibration(vehicle: VehicleParams) -> ThrustCalibration:
+    """Normalised thrust as the simulated vehicle's motors give it: hover at 1 / (T/W)."""
+    return ThrustCalibration(mass_kg=vehicle.mass_kg, gravity_mps2=vehicle.gravity_mps2,
+                             hover_thrust_norm=1.0 / vehicle.thrust_to_weight)
 
 
 @dataclass(frozen=True, slots=True)
 class EmulatorParams:
-    """PX4-like behaviour; names in comments are the PX4 parameters they stand for."""
+    """The MAVLink side and the PX4 parameters the autopilot behaves by (PX4 names in the
+    comments; :meth:`autopilot_params` turns them into the autopilot's settings)."""
 
     system_id: int = 1
     component_id: int = 1
@@ -114,108 +94,32 @@ class EmulatorParams:
     #: POSCTL)
     offboard_loss_action: str = 'land'
     land_speed_mps: float = 0.7            # MPC_LAND_SPEED
-    vz_gain_per_s: float = 2.0             # hold/land vertical speed loop gain
     disarm_landed_s: float = 2.0           # COM_DISARM_LAND (<= 0: off)
     disarm_preflight_s: float = 10.0       # COM_DISARM_PRFLT (<= 0: off)
     range_min_cm: int = 5                  # LidarLite v3
     range_max_cm: int = 4000
-    thrust: ThrustCalibration = field(default_factory=ThrustCalibration)
+    thrust: ThrustCalibration = field(
+        default_factory=lambda: vehicle_thrust_calibration(VehicleParams()))
 
     def __post_init__(self) -> None:
-        for name in ('offboard_loss_timeout_s', 'land_speed_mps', 'vz_gain_per_s'):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0.0:
-                raise ValueError(f'EmulatorParams.{name} = {v!r}: must be a finite number > 0')
-        for name in ('disarm_landed_s', 'disarm_preflight_s'):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f'EmulatorParams.{name} = {v!r}: must be finite')
-        if self.offboard_loss_action not in _LOSS_MODES:
-            raise ValueError(f'EmulatorParams.offboard_loss_action = '
-                             f"{self.offboard_loss_action!r}: must be 'land', 'hold', "
-                             "'return' or 'position'")
         for name in ('system_id', 'component_id'):
-            if not 1 <= getattr(self, name) <= 255:
-                raise ValueError(f'EmulatorParams.{name} = {getattr(self, name)!r}: '
-                                 'must be in [1, 255]')
+            in_range(f'EmulatorParams.{name}', getattr(self, name), 1, 255)
         for name in ('bind_port', 'remote_port'):
-            if not 0 <= getattr(self, name) <= 65535:
-                raise ValueError(f'EmulatorParams.{name} = {getattr(self, name)!r}: '
-                                 'must be a UDP port')
-        if not 0 < self.range_min_cm < self.range_max_cm < 65535:
-            raise ValueError(f'EmulatorParams.range_min_cm/range_max_cm = '
-                             f'{self.range_min_cm}/{self.range_max_cm}: need 0 < min < max')
+            in_range(f'EmulatorParams.{name}', getattr(self, name), 0, 65535)
+        integer_at_least('EmulatorParams.range_min_cm', self.range_min_cm, 1)
+        require(isinstance(self.range_max_cm, int)
+                and self.range_min_cm < self.range_max_cm < 65535,
+                'EmulatorParams.range_max_cm',
+                f'must be an integer in ({self.range_min_cm}, 65535)', self.range_max_cm)
+        self.autopilot_params()   # validates the autopilot's fields (ValueError naming them)
 
-
-# --- transports ----------------------------------------------------------------------------
-
-class UdpTransport:
-    """Non-blocking UDP socket bound to ``bind``; sends to ``remote`` (updated by the emulator
-    to the source of the last *valid* MAVLink packet, as PX4 does)."""
-
-    def __init__(self, bind: tuple[str, int], remote: tuple[str, int]) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(bind)
-        self.sock.setblocking(False)
-        self.remote = remote
-        self.send_errors = 0
-
-    @property
-    def local_address(self) -> tuple[str, int]:
-        return self.sock.getsockname()
-
-    def send(self, data: bytes) -> None:
-        try:
-            self.sock.sendto(data, self.remote)
-        except OSError:
-            self.send_errors += 1  # nobody listening yet (ECONNREFUSED) and the like
-
-    def receive(self) -> list[tuple[bytes, object]]:
-        out = []
-        for _ in range(1000):
-            try:
-                data, addr = self.sock.recvfrom(65535)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:
-                continue  # ICMP port unreachable reported on a later recv
-            out.append((data, addr))
-        return out
-
-    def set_peer(self, addr: object) -> None:
-        self.remote = addr
-
-    def close(self) -> None:
-        self.sock.close()
-
-
-class MemoryLink:
-    """Two in-memory endpoints ``a`` and ``b``: bytes sent on one are received on the other."""
-
-    class End:
-        def __init__(self) -> None:
-            self.inbox: list[bytes] = []
-            self.peer: MemoryLink.End | None = None
-
-        def send(self, data: bytes) -> None:
-            self.peer.inbox.append(bytes(data))
-
-        def write(self, data: bytes) -> None:  # pymavlink file-like writer
-            self.send(data)
-
-        def receive(self) -> list[tuple[bytes, object]]:
-            out, self.inbox = self.inbox, []
-            return [(d, None) for d in out]
-
-        def set_peer(self, addr: object) -> None:
-            pass
-
-        def close(self) -> None:
-            pass
-
-    def __init__(self) -> None:
-        self.a, self.b = MemoryLink.End(), MemoryLink.End()
-        self.a.peer, self.b.peer = self.b, self.a
+    def autopilot_params(self) -> AutopilotParams:
+        """The autopilot's settings these PX4 parameters stand for."""
+        return AutopilotParams(offboard_loss_timeout_s=self.offboard_loss_timeout_s,
+                               offboard_loss_action=self.offboard_loss_action,
+                               land_speed_mps=self.land_speed_mps,
+                               disarm_landed_s=self.disarm_landed_s,
+                               disarm_preflight_s=self.disarm_preflight_s)
 
 
 class _Writer:
@@ -228,12 +132,16 @@ class _Writer:
         self.transport.send(data)
 
 
-# --- the emulator --------------------------------------------------------------------------
-
 class Px4Emulator:
-    """PX4-like autopilot endpoint for the simulator (see the module docstring)."""
+    """PX4's MAVLink face of an autopilot (see the module docstring).
 
-    def __init__(self, params: EmulatorParams | None = None, transport=None) -> None:
+    ``autopilot`` None: the emulator makes its own from ``params.autopilot`` and runs its mode
+    logic in :meth:`update` (no world flies it: a MAVLink peer for the bridge's tests).
+    Otherwise the caller's world ticks the autopilot (:class:`deck_simulator.loop.SimulationLoop`).
+    """
+
+    def __init__(self, params: EmulatorParams | None = None, transport=None,
+                 autopilot: EmulatedAutopilot | None = None) -> None:
         self.params = params or EmulatorParams()
         p = self.params
         self.transport = transport if transport is not None else UdpTransport(
@@ -241,23 +149,18 @@ class Px4Emulator:
         self.mav = mavlink.MAVLink(_Writer(self.transport), srcSystem=p.system_id,
                                    srcComponent=p.component_id)
         self.mav.robust_parsing = True
+        self._drives_autopilot = autopilot is None
+        self.autopilot = autopilot if autopilot is not None else EmulatedAutopilot(
+            p.autopilot_params())
         self.rejected: dict[str, int] = {'nan': 0, 'bad_data': 0, 'out_of_order': 0,
                                          'wrong_target': 0, 'unsupported_mask': 0,
                                          'bad_signature': 0}
         self.counters: dict[str, int] = {'setpoints_rx': 0, 'commands_rx': 0,
                                          'heartbeats_rx': 0, 'messages_tx': 0,
-                                         'failsafes': 0, 'timesync_rx': 0}
+                                         'timesync_rx': 0}
         self.intervals_s = dict(DEFAULT_INTERVALS_S)
         self._next_due = dict.fromkeys(self.intervals_s, -math.inf)
-        self.armed = False
-        self.main_mode, self.sub_mode = MODE_POSCTL
-        self.failsafe_active = False
-        #: (x, y) ENU where OFFBOARD was last engaged: the RTL target (None before)
-        self.home_m: tuple[float, float] | None = None
         self.acks: list[tuple[int, int]] = []   # (command, result) sent, for tests/diagnostics
-        self.setpoint: VehicleCommand | None = None
-        self.last_setpoint_s = -math.inf
-        self._user_mode = MODE_POSCTL   # PX4's "user intention": restored after a failsafe
         self.last_peer_heartbeat_s = -math.inf
         self._t_s = -math.inf
         self._t0_s: float | None = None
@@ -266,20 +169,44 @@ class Px4Emulator:
         self._vel: Vec3 = (0.0, 0.0, 0.0)
         self._att: Vec3 = (0.0, 0.0, 0.0)
         self._rates: Vec3 = (0.0, 0.0, 0.0)
-        self._accel: Vec3 = (0.0, 0.0, 9.81)
+        self._accel: Vec3 = (0.0, 0.0, VehicleParams().gravity_mps2)
         self._range_m: float | None = None
         self.landed = True
-        self._hold_yaw = 0.0
-        self._armed_since_s = -math.inf
-        self._airborne_since_arm = False
-        self._landed_since_s: float | None = None
 
-    # --- properties ----------------------------------------------------------------------
+    # --- the autopilot's state, as PX4 names it -------------------------------------------
 
     @property
     def mode(self) -> str:
         """PX4 mode name ('POSCTL', 'OFFBOARD', 'AUTO.LAND', ...)."""
-        return px4_mode_name(px4_custom_mode(self.main_mode, self.sub_mode))
+        return px4_mode_name(px4_custom_mode(*PX4_MODES[self.autopilot.mode]))
+
+    @property
+    def armed(self) -> bool:
+        return self.autopilot.armed
+
+    @property
+    def failsafe_active(self) -> bool:
+        """The offboard-loss failsafe flies (until a mode is set or the vehicle disarms)."""
+        return self.autopilot.in_failsafe
+
+    @property
+    def kind(self) -> str:
+        """What flies the vehicle (:attr:`EmulatedAutopilot.kind`)."""
+        return self.autopilot.kind
+
+    @property
+    def home_m(self) -> tuple[float, float] | None:
+        """(x, y) ENU where OFFBOARD was last engaged: the RTL target."""
+        return self.autopilot.home_m
+
+    @property
+    def setpoint(self) -> AttitudeSetpoint | None:
+        """The last decoded SET_ATTITUDE_TARGET (ENU/FLU, newtons)."""
+        return self.autopilot.setpoint
+
+    @property
+    def last_setpoint_s(self) -> float:
+        return self.autopilot.last_setpoint_s
 
     @property
     def local_address(self):
@@ -308,15 +235,20 @@ class Px4Emulator:
         verify_signature_first(self.mav)
 
     def set_transport(self, transport) -> None:
-        """Swap the byte transport (e.g. wrap it in the simulator's link-fault impairment,
-        :class:`deck_simulator.node.ImpairedLink`); the encoder writes to the new one."""
+        """Swap the byte transport (e.g. wrap it in the link faults' impairment,
+        :class:`deck_simulator.link.ImpairedLink`); the encoder writes to the new one."""
         self.transport = transport
         self.mav.file = _Writer(transport)
+
+    def use_autopilot(self, autopilot: EmulatedAutopilot) -> None:
+        """Be the MAVLink face of ``autopilot`` (ticked by its world from now on)."""
+        self.autopilot = autopilot
+        self._drives_autopilot = False
 
     # --- stepping ------------------------------------------------------------------------
 
     def update(self, t_s: float) -> None:
-        """Read and handle every pending packet, then run the failsafe and disarm logic."""
+        """Read and handle every pending packet (and, without a world, run the mode logic)."""
         if not math.isfinite(t_s):
             self.rejected['nan'] += 1
             return
@@ -348,7 +280,8 @@ class Px4Emulator:
                     self.rejected['bad_data'] += 1
             if valid and addr is not None:
                 self.transport.set_peer(addr)
-        self._run_logic(t_s)
+        if self._drives_autopilot:
+            self.autopilot.update(t_s, self.landed)
         self._send_due(t_s, only_heartbeat=True)
 
     def publish_state(self, t_s: float, position_enu: Vec3, velocity_enu: Vec3, roll: float,
@@ -371,29 +304,9 @@ class Px4Emulator:
         self._accel = tuple(accel_body_flu)
         self._range_m = range_m if range_m is not None and math.isfinite(range_m) else None
         self.landed = bool(landed)
+        if self._drives_autopilot:
+            self.autopilot.landed = self.landed
         self._send_due(t_s, only_heartbeat=False)
-
-    def command(self) -> VehicleCommand:
-        """What the vehicle should fly now (see :class:`VehicleCommand`)."""
-        roll, pitch, yaw = self._att
-        if not self.armed:
-            return VehicleCommand('idle', 0.0, 0.0, yaw, 0.0)
-        mode = (self.main_mode, self.sub_mode)
-        if mode == MODE_OFFBOARD and self.setpoint is not None:
-            return self.setpoint
-        cal = self.params.thrust
-        if mode == MODE_AUTO_LAND or (mode == MODE_POSCTL and self.failsafe_active):
-            # (POSCTL in a failsafe: PX4's 'position' action without RC is a descent)
-            vz_ref, kind = -self.params.land_speed_mps, (
-                'failsafe_land' if self.failsafe_active else 'land')
-        elif mode == MODE_AUTO_RTL:
-            vz_ref, kind = 0.0, 'failsafe_return'
-        else:
-            vz_ref, kind = 0.0, 'hold'
-        accel = cal.gravity_mps2 + self.params.vz_gain_per_s * (vz_ref - self._vel[2])
-        tilt = max(math.cos(roll) * math.cos(pitch), 0.5)
-        thrust = min(max(cal.mass_kg * accel / tilt, 0.0), cal.max_thrust_n)
-        return VehicleCommand(kind, 0.0, 0.0, self._hold_yaw, thrust)
 
     # --- internals -----------------------------------------------------------------------
 
@@ -408,13 +321,6 @@ class Px4Emulator:
 
     def _time_boot_ms(self, t_s: float) -> int:
         return max(int((t_s - (self._t0_s or 0.0)) * 1000.0), 0) & 0xFFFFFFFF
-
-    def _set_mode(self, mode: tuple[int, int]) -> None:
-        if mode != MODE_OFFBOARD:
-            self._hold_yaw = self._att[2]  # hold/land keep the heading of the switch
-        elif (self.main_mode, self.sub_mode) != MODE_OFFBOARD:
-            self.home_m = (self._pos[0], self._pos[1])   # RTL comes back here
-        self.main_mode, self.sub_mode = mode
 
     def _ack(self, command: int, result: int, msg) -> None:
         self.acks.append((command, result))
@@ -440,9 +346,8 @@ class Px4Emulator:
                 self.rejected['nan'] += 1
                 return
             self.counters['setpoints_rx'] += 1
-            self.last_setpoint_s = t_s
-            self.setpoint = VehicleCommand('offboard', tgt.roll_rad, tgt.pitch_rad,
-                                           tgt.yaw_rad, tgt.thrust_n)
+            self.autopilot.on_setpoint(t_s, tgt.roll_rad, tgt.pitch_rad, tgt.yaw_rad,
+                                       tgt.thrust_n)
         elif kind == 'TIMESYNC':
             # PX4 (Timesync::handle_time_sync): a request (tc1 == 0) is answered at once with
             # tc1 = our time (ns) and the request's ts1 echoed; the companion's round trip is
@@ -465,12 +370,10 @@ class Px4Emulator:
 
     def _handle_command(self, t_s: float, msg) -> None:
         """COMMAND_LONG with PX4 v1.16's answers (measured against its SITL): HEARTBEAT's
-        interval is refused (FAILED), a disarm in the air is TEMPORARILY_REJECTED, a
-        DO_SET_MODE is ACKed twice (the MAVLink receiver's ACCEPTED, then the commander's
-        verdict), OFFBOARD needs one setpoint younger than COM_OF_LOSS_T when armed and is
-        always accepted while disarmed (arming in OFFBOARD then needs the setpoint)."""
+        interval is refused (FAILED), a DO_SET_MODE is ACKed twice (the MAVLink receiver's
+        ACCEPTED, then the commander's verdict); arming and modes are the autopilot's rules."""
         cmd = msg.command
-        fresh = t_s - self.last_setpoint_s <= self.params.offboard_loss_timeout_s
+        ap = self.autopilot
         if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(msg.param1), msg.param2
             if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
@@ -488,23 +391,8 @@ class Px4Emulator:
             self._next_due[msg_id] = -math.inf
             self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
         elif cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            if msg.param1 >= 0.5:
-                if (self.main_mode, self.sub_mode) == MODE_OFFBOARD and not fresh \
-                        and not self.armed:
-                    self._ack(cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, msg)
-                    return
-                if not self.armed:
-                    self.armed = True
-                    self._armed_since_s = t_s
-                    self._airborne_since_arm = not self.landed
-                    self._landed_since_s = None
-                    self._hold_yaw = self._att[2]
-                self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
-            elif self.landed or int(msg.param2) == FORCE_DISARM_MAGIC or not self.armed:
-                self._disarm()
-                self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)
-            else:   # no disarm in the air (PX4: "Disarming denied: not landed")
-                self._ack(cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, msg)
+            self._ack(cmd, ap.request_arm(t_s, msg.param1 >= 0.5,
+                                          force=int(msg.param2) == FORCE_DISARM_MAGIC), msg)
         elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
             self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)      # PX4's MAVLink receiver
             mode = (int(msg.param2), int(msg.param3) if int(msg.param2) == 4 else 0)
@@ -512,13 +400,7 @@ class Px4Emulator:
                     mode not in _ACCEPTED_MODES:
                 self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
                 return
-            if mode == MODE_OFFBOARD and self.armed and not fresh:
-                self._ack(cmd, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, msg)
-                return
-            self._set_mode(mode)
-            self._user_mode = mode
-            self.failsafe_active = False
-            self._ack(cmd, mavlink.MAV_RESULT_ACCEPTED, msg)       # the commander's verdict
+            self._ack(cmd, ap.request_mode(t_s, _ACCEPTED_MODES[mode]), msg)   # the verdict
         else:
             self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg)
 
@@ -526,17 +408,17 @@ class Px4Emulator:
 
     def param_table(self) -> dict[str, tuple[int, float]]:
         """The parameters this emulator answers, ``name → (MAV_PARAM_TYPE, value)``: PX4
-        v1.16's names and defaults, with the values this emulator behaves by."""
-        p = self.params
+        v1.16's names and defaults, with the values its autopilot behaves by."""
+        a = self.autopilot.params
         return {
             'COM_OBL_RC_ACT': (MAV_PARAM_TYPE_INT32,
-                               float(_LOSS_ACTION_VALUE[p.offboard_loss_action])),
-            'COM_OF_LOSS_T': (MAV_PARAM_TYPE_REAL32, p.offboard_loss_timeout_s),
-            'MPC_THR_HOVER': (MAV_PARAM_TYPE_REAL32, p.thrust.hover_thrust_norm),
+                               float(_LOSS_ACTION_VALUE[a.offboard_loss_action])),
+            'COM_OF_LOSS_T': (MAV_PARAM_TYPE_REAL32, a.offboard_loss_timeout_s),
+            'MPC_THR_HOVER': (MAV_PARAM_TYPE_REAL32, self.params.thrust.hover_thrust_norm),
             'MPC_USE_HTE': (MAV_PARAM_TYPE_INT32, 1.0),
-            'MPC_LAND_SPEED': (MAV_PARAM_TYPE_REAL32, p.land_speed_mps),
-            'COM_DISARM_LAND': (MAV_PARAM_TYPE_REAL32, p.disarm_landed_s),
-            'COM_DISARM_PRFLT': (MAV_PARAM_TYPE_REAL32, p.disarm_preflight_s),
+            'MPC_LAND_SPEED': (MAV_PARAM_TYPE_REAL32, a.land_speed_mps),
+            'COM_DISARM_LAND': (MAV_PARAM_TYPE_REAL32, a.disarm_landed_s),
+            'COM_DISARM_PRFLT': (MAV_PARAM_TYPE_REAL32, a.disarm_preflight_s),
         }
 
     def _handle_param(self, msg) -> None:
@@ -548,17 +430,18 @@ class Px4Emulator:
         if name not in table:
             return
         if msg.get_type() == 'PARAM_SET':
-            typ = table[name][0]
-            v = param_value_from_wire(msg.param_value, typ, True)
+            v = param_value_from_wire(msg.param_value, table[name][0], True)
+            change = {}
+            if name == 'COM_OBL_RC_ACT' and PX4_OFFBOARD_LOSS_ACTIONS.get(int(v)) in \
+                    ap_modes.LOSS_ACTIONS:
+                change['offboard_loss_action'] = PX4_OFFBOARD_LOSS_ACTIONS[int(v)]
+            elif name == 'COM_OF_LOSS_T':
+                change['offboard_loss_timeout_s'] = v
+            elif name == 'MPC_LAND_SPEED':
+                change['land_speed_mps'] = v
             try:
-                if name == 'COM_OBL_RC_ACT' and int(v) in PX4_OFFBOARD_LOSS_ACTIONS and \
-                        PX4_OFFBOARD_LOSS_ACTIONS[int(v)] in _LOSS_MODES:
-                    self.params = replace(self.params,
-                                          offboard_loss_action=PX4_OFFBOARD_LOSS_ACTIONS[int(v)])
-                elif name == 'COM_OF_LOSS_T':
-                    self.params = replace(self.params, offboard_loss_timeout_s=v)
-                elif name == 'MPC_LAND_SPEED':
-                    self.params = replace(self.params, land_speed_mps=v)
+                self.autopilot.params = replace(self.autopilot.params, **change)
+                self.params = replace(self.params, **change)
             except ValueError:
                 self.rejected['bad_data'] += 1   # out of range: the value stays
             table = self.param_table()
@@ -566,34 +449,6 @@ class Px4Emulator:
         typ, value = table[name]
         self.mav.param_value_send(name.encode('ascii'), param_value_to_wire(value, typ, True),
                                   typ, len(names), names.index(name))
-
-    def _disarm(self) -> None:
-        self.armed = False
-        if self.failsafe_active:
-            # PX4 restores the user's mode once the failsafe clears (at disarm): after a
-            # failsafe landing the heartbeat reads OFFBOARD while disarmed (v1.16, measured)
-            self.main_mode, self.sub_mode = self._user_mode
-        self.failsafe_active = False  # counters['failsafes'] keeps the history
-        self._landed_since_s = None
-
-    def _run_logic(self, t_s: float) -> None:
-        p = self.params
-        if self.armed and (self.main_mode, self.sub_mode) == MODE_OFFBOARD and \
-                t_s - self.last_setpoint_s > p.offboard_loss_timeout_s:
-            self._set_mode(_LOSS_MODES[p.offboard_loss_action])
-            self.failsafe_active = True
-            self.counters['failsafes'] += 1
-        if not self.armed:
-            return
-        if not self.landed:
-            self._airborne_since_arm = True
-            self._landed_since_s = None
-            return
-        if self._landed_since_s is None:
-            self._landed_since_s = t_s
-        limit = p.disarm_landed_s if self._airborne_since_arm else p.disarm_preflight_s
-        if limit > 0.0 and t_s - self._landed_since_s >= limit:
-            self._disarm()
 
     def _send_due(self, t_s: float, only_heartbeat: bool) -> None:
         for msg_id, interval in self.intervals_s.items():
@@ -610,11 +465,12 @@ class Px4Emulator:
         m = self.mav
         ms = self._time_boot_ms(t_s)
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            armed = self.autopilot.armed
             base = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (MAV_MODE_FLAG_SAFETY_ARMED
-                                                        if self.armed else 0)
-            status = mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY
+                                                        if armed else 0)
+            status = mavlink.MAV_STATE_ACTIVE if armed else mavlink.MAV_STATE_STANDBY
             m.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base,
-                             px4_custom_mode(self.main_mode, self.sub_mode), status)
+                             px4_custom_mode(*PX4_MODES[self.autopilot.mode]), status)
         elif msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
             r, p, y = euler_enu_flu_to_ned_frd(*self._att)
             wr, wp, wy = flu_to_frd(*self._rates)
@@ -648,3 +504,7 @@ class Px4Emulator:
             m.extended_sys_state_send(mavlink.MAV_VTOL_STATE_UNDEFINED,
                                       mavlink.MAV_LANDED_STATE_ON_GROUND if self.landed
                                       else mavlink.MAV_LANDED_STATE_IN_AIR)
+
+
+__all__ = ['DEFAULT_INTERVALS_S', 'PX4_MODES', 'EmulatorParams', 'MemoryLink', 'Px4Emulator',
+           'UdpTransport', 'vehicle_thrust_calibration']

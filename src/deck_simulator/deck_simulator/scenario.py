@@ -1,14 +1,11 @@
 """Scenarios: nested frozen dataclasses loaded from YAML with strict validation.
 
-``load_scenario(name_or_path)`` accepts a built-in name (``builtin_names()``, the YAML files in
-``deck_simulator/data/``) or a path to a YAML file. Unknown keys are rejected, types and ranges
-are checked, and every error message carries the source and the key path, e.g.
-``scenario 'x.yaml': apron.heave.stroke_m must be > 0, got -1``.
-
-The ``vehicle`` and ``sensors`` sections override fields of
-:class:`deck_simulator.vehicle.VehicleParams` and :class:`deck_simulator.sensors.SensorParams`
-(same names). ``faults`` is a list of fault entries ``{type: ..., start_s: .., end_s: .., ...}``
-validated by :func:`deck_simulator.faults.parse_faults` (see that module and the README).
+``load_scenario(name_or_path)`` takes a built-in name (``builtin_names()``: the YAML files in
+``deck_simulator/data/``) or a path. Unknown keys are rejected, types and ranges checked, and
+every error names the source and the key path, e.g. ``scenario 'x.yaml': apron.heave.stroke_m
+must be > 0, got -1``. ``vehicle`` and ``sensors`` override fields of
+:class:`~deck_simulator.vehicle.VehicleParams` / :class:`~deck_simulator.sensors.SensorParams`;
+``faults`` is validated by :func:`deck_simulator.faults.parse_faults`.
 """
 
 from __future__ import annotations
@@ -19,6 +16,7 @@ from pathlib import Path
 import typing
 from typing import Any
 
+from deckland_common.validate import is_finite_number, require
 import yaml
 
 from deck_simulator.faults import FaultSpec, parse_faults
@@ -38,15 +36,6 @@ _HEAVE_KEYS = {
 }
 
 
-def _finite(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _req(cond: bool, name: str, rule: str, value: Any) -> None:
-    if not cond:
-        raise ValueError(f'{name} {rule}, got {value!r}')
-
-
 @dataclass(frozen=True, slots=True)
 class HeaveSpec:
     """Deck heave model and its parameters (only the chosen model's keys may be given)."""
@@ -63,20 +52,20 @@ class HeaveSpec:
     jonswap_gamma: float = 3.3       # sea_state: JONSWAP peak enhancement
 
     def __post_init__(self) -> None:
-        _req(self.model in HEAVE_MODELS, 'model', f'must be one of {list(HEAVE_MODELS)}',
-             self.model)
+        require(self.model in HEAVE_MODELS, 'model', f'must be one of {list(HEAVE_MODELS)}',
+                self.model)
         for name in ('stroke_m', 'speed_mps', 'period_s', 'peak_period_s'):
             v = getattr(self, name)
-            _req(_finite(v) and v > 0, name, 'must be > 0', v)
+            require(is_finite_number(v) and v > 0, name, 'must be > 0', v)
         for name in ('amplitude_m', 'significant_height_m'):
             v = getattr(self, name)
-            _req(_finite(v) and v >= 0, name, 'must be >= 0', v)
-        _req(self.spectrum in SPECTRA, 'spectrum', f'must be one of {list(SPECTRA)}',
-             self.spectrum)
-        _req(isinstance(self.components, int) and 2 <= self.components <= 1000, 'components',
-             'must be an integer in [2, 1000]', self.components)
-        _req(_finite(self.jonswap_gamma) and self.jonswap_gamma >= 1.0, 'jonswap_gamma',
-             'must be >= 1', self.jonswap_gamma)
+            require(is_finite_number(v) and v >= 0, name, 'must be >= 0', v)
+        require(self.spectrum in SPECTRA, 'spectrum', f'must be one of {list(SPECTRA)}',
+                self.spectrum)
+        require(isinstance(self.components, int) and 2 <= self.components <= 1000, 'components',
+                'must be an integer in [2, 1000]', self.components)
+        require(is_finite_number(self.jonswap_gamma) and self.jonswap_gamma >= 1.0,
+                'jonswap_gamma', 'must be >= 1', self.jonswap_gamma)
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,8 +77,8 @@ class ApronSpec:
     drift_velocity_mps: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        _req(all(v > 0 for v in self.size_m), 'size_m', 'must be > 0', self.size_m)
-        _req(self.mean_height_m >= 0, 'mean_height_m', 'must be >= 0', self.mean_height_m)
+        require(all(v > 0 for v in self.size_m), 'size_m', 'must be > 0', self.size_m)
+        require(self.mean_height_m >= 0, 'mean_height_m', 'must be >= 0', self.mean_height_m)
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,10 +91,10 @@ class WindSpec:
     vertical_gust_ratio: float = 0.3      # σ_z / σ_xy
 
     def __post_init__(self) -> None:
-        _req(self.gust_std_mps >= 0, 'gust_std_mps', 'must be >= 0', self.gust_std_mps)
-        _req(self.gust_tau_s > 0, 'gust_tau_s', 'must be > 0', self.gust_tau_s)
-        _req(self.vertical_gust_ratio >= 0, 'vertical_gust_ratio', 'must be >= 0',
-             self.vertical_gust_ratio)
+        require(self.gust_std_mps >= 0, 'gust_std_mps', 'must be >= 0', self.gust_std_mps)
+        require(self.gust_tau_s > 0, 'gust_tau_s', 'must be > 0', self.gust_tau_s)
+        require(self.vertical_gust_ratio >= 0, 'vertical_gust_ratio', 'must be >= 0',
+                self.vertical_gust_ratio)
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,7 +111,7 @@ class RandomizeSpec:
     def __post_init__(self) -> None:
         for name in ('start_offset_m', 'start_yaw_rad', 'wind_direction_rad', 'mean_height_m'):
             v = getattr(self, name)
-            _req(v >= 0, name, 'must be >= 0', v)
+            require(v >= 0, name, 'must be >= 0', v)
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,13 +130,13 @@ class Scenario:
     max_tilt_rad: float = 0.35
 
     def __post_init__(self) -> None:
-        _req(self.timeout_s > 0, 'timeout_s', 'must be > 0', self.timeout_s)
-        _req(self.start_position_m[2] > 0, 'start_position_m', 'must have z > 0',
-             self.start_position_m)
+        require(self.timeout_s > 0, 'timeout_s', 'must be > 0', self.timeout_s)
+        require(self.start_position_m[2] > 0, 'start_position_m', 'must have z > 0',
+                self.start_position_m)
         object.__setattr__(self, 'faults', parse_faults(self.faults))
-        _req(self.crash_speed_mps > 0, 'crash_speed_mps', 'must be > 0', self.crash_speed_mps)
-        _req(0 < self.max_tilt_rad < math.pi / 2, 'max_tilt_rad', 'must be in (0, π/2)',
-             self.max_tilt_rad)
+        require(self.crash_speed_mps > 0, 'crash_speed_mps', 'must be > 0', self.crash_speed_mps)
+        require(0 < self.max_tilt_rad < math.pi / 2, 'max_tilt_rad', 'must be in (0, π/2)',
+                self.max_tilt_rad)
 
 
 # --- generic YAML → dataclass builder ---------------------------------------------------------
@@ -159,7 +148,7 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
             raise ValueError(f'{path} must be a mapping, got {value!r}')
         return _build(tp, value, path)
     if tp is float:
-        if not _finite(value):
+        if not is_finite_number(value):
             raise ValueError(f'{path} must be a finite number, got {value!r}')
         return float(value)
     if tp is int:

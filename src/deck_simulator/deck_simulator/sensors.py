@@ -1,15 +1,11 @@
-"""Sensor models of the simulated vehicle (truth geometry plus seeded noise). Pure.
+"""Sensor models of the simulated vehicle: truth geometry plus seeded noise (pure).
 
-Every sensor owns its own ``random.Random`` so that reading one sensor more or less often
-never changes another sensor's stream. Its Gaussian noise comes from a standard-normal source
-``normal() -> float``: by default ``rng.gauss(0, 1)`` (so a sensor built from a ``Random`` alone
-behaves as before), and in :class:`~deck_simulator.world.World` a :func:`normal_stream` of its
-own (seeded numpy blocks, several times cheaper per sample than ``random.gauss``).
-Stochastic processes (GPS bias, baro bias, glints) are advanced lazily at read time with their
-exact discretisation, so they cost nothing per physics step.
-
-The camera projection here is the simulator's *truth* and is written independently of the
-estimator's camera model (paper (27)-(30)): a full pinhole through the tilted body.
+Every sensor owns its random streams (``random.Random`` for uniform draws, a
+:func:`normal_stream` of seeded numpy blocks for its Gaussian noise), so reading one sensor
+more or less often never changes another's. Stochastic processes (GPS and baro bias, glints)
+advance lazily at read time with their exact discretisation. The camera projection is the
+simulator's truth, written independently of the estimator's (27)-(30): a full pinhole through
+the tilted body.
 """
 
 from __future__ import annotations
@@ -21,6 +17,7 @@ import math
 import random
 
 from deckland_common.frames import Mat3, rot_body_to_world
+from deckland_common.validate import is_finite_number, require
 import numpy as np
 
 Block = tuple[int, int, int, int, int]   # (signature, x, y, w, h), Pixy units
@@ -54,15 +51,6 @@ def _gauss_of(rng: random.Random) -> Normal:
     return lambda: gauss(0.0, 1.0)
 
 
-def _check(cond: bool, name: str, rule: str, value) -> None:
-    if not cond:
-        raise ValueError(f'{name} {rule}, got {value!r}')
-
-
-def _finite(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-
-
 @dataclass(frozen=True, slots=True)
 class CameraParams:
     """IR Pixy (CMUcam5) emulation: 320×200 px, 50 Hz, full FOV 60°×47° (Table 2)."""
@@ -87,22 +75,22 @@ class CameraParams:
     def __post_init__(self) -> None:
         for name in ('fov_x_deg', 'fov_y_deg'):
             v = getattr(self, name)
-            _check(_finite(v) and 0 < v < 170, name, 'must be in (0, 170) degrees', v)
+            require(is_finite_number(v) and 0 < v < 170, name, 'must be in (0, 170) degrees', v)
         for name in ('width_px', 'height_px', 'signature'):
             v = getattr(self, name)
-            _check(isinstance(v, int) and v > 0, name, 'must be a positive integer', v)
+            require(isinstance(v, int) and v > 0, name, 'must be a positive integer', v)
         for name in ('rate_hz', 'max_range_m', 'beacon_size_m', 'false_blob_lifetime_s'):
             v = getattr(self, name)
-            _check(_finite(v) and v > 0, name, 'must be > 0', v)
+            require(is_finite_number(v) and v > 0, name, 'must be > 0', v)
         for name in ('latency_s', 'pixel_noise_px', 'false_blob_rate_hz'):
             v = getattr(self, name)
-            _check(_finite(v) and v >= 0, name, 'must be >= 0', v)
-        _check(_finite(self.dropout_prob) and 0 <= self.dropout_prob <= 1, 'dropout_prob',
-               'must be in [0, 1]', self.dropout_prob)
+            require(is_finite_number(v) and v >= 0, name, 'must be >= 0', v)
+        require(is_finite_number(self.dropout_prob) and 0 <= self.dropout_prob <= 1,
+                'dropout_prob', 'must be in [0, 1]', self.dropout_prob)
         for name, n in (('principal_point_px', 2), ('mount_offset_m', 3), ('mount_rpy_rad', 3)):
             v = getattr(self, name)
-            _check(len(v) == n and all(_finite(x) for x in v), name,
-                   f'must be {n} finite numbers', v)
+            require(len(v) == n and all(is_finite_number(x) for x in v), name,
+                    f'must be {n} finite numbers', v)
 
     @property
     def fx_px(self) -> float:
@@ -126,14 +114,14 @@ class LidarParams:
     def __post_init__(self) -> None:
         for name in ('rate_hz', 'max_range_m'):
             v = getattr(self, name)
-            _check(_finite(v) and v > 0, name, 'must be > 0', v)
+            require(is_finite_number(v) and v > 0, name, 'must be > 0', v)
         for name in ('noise_m', 'min_range_m'):
             v = getattr(self, name)
-            _check(_finite(v) and v >= 0, name, 'must be >= 0', v)
-        _check(self.min_range_m < self.max_range_m, 'min_range_m', 'must be < max_range_m',
-               self.min_range_m)
-        _check(_finite(self.dropout_prob) and 0 <= self.dropout_prob <= 1, 'dropout_prob',
-               'must be in [0, 1]', self.dropout_prob)
+            require(is_finite_number(v) and v >= 0, name, 'must be >= 0', v)
+        require(self.min_range_m < self.max_range_m, 'min_range_m', 'must be < max_range_m',
+                self.min_range_m)
+        require(is_finite_number(self.dropout_prob) and 0 <= self.dropout_prob <= 1,
+                'dropout_prob', 'must be in [0, 1]', self.dropout_prob)
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,11 +140,11 @@ class GpsParams:
     def __post_init__(self) -> None:
         for name in ('rate_hz', 'bias_tau_s', 'alt_bias_tau_s'):
             v = getattr(self, name)
-            _check(_finite(v) and v > 0, name, 'must be > 0', v)
+            require(is_finite_number(v) and v > 0, name, 'must be > 0', v)
         for name in ('bias_std_m', 'noise_m', 'velocity_noise_mps', 'alt_bias_std_m',
                      'alt_noise_m'):
             v = getattr(self, name)
-            _check(_finite(v) and v >= 0, name, 'must be >= 0', v)
+            require(is_finite_number(v) and v >= 0, name, 'must be >= 0', v)
 
 
 @dataclass(frozen=True, slots=True)
@@ -169,11 +157,11 @@ class ImuParams:
     accel_noise_mps2: float = 0.1
 
     def __post_init__(self) -> None:
-        _check(_finite(self.rate_hz) and self.rate_hz > 0, 'rate_hz', 'must be > 0',
-               self.rate_hz)
+        require(is_finite_number(self.rate_hz) and self.rate_hz > 0, 'rate_hz', 'must be > 0',
+                self.rate_hz)
         for name in ('attitude_noise_rad', 'yaw_noise_rad', 'accel_noise_mps2'):
             v = getattr(self, name)
-            _check(_finite(v) and v >= 0, name, 'must be >= 0', v)
+            require(is_finite_number(v) and v >= 0, name, 'must be >= 0', v)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,32 +1,12 @@
 """Truth model of the quadcopter: mixer (1), rigid-body dynamics (2), ground effect (3)-(4).
 
-Pure and deterministic (no rclpy, no randomness; wind is an input). State is kept in plain
-floats and :meth:`Vehicle.step` is one flat function because it runs at >= 400 Hz inside
-campaigns of thousands of landings.
-
-Model (paper section 2, Table 2):
-
-* mixer (1): ``u_z = F1+F2+F3+F4``, ``u_φ = L(F2−F4)``, ``u_θ = L(F3−F1)``,
-  ``u_ψ = c_d(−F1+F2−F3+F4)``: a plus configuration with motor 1 on the nose (+x body),
-  2 on the left (+y), 3 at the tail (−x), 4 on the right (−y); 1/3 and 2/4 spin in opposite
-  directions. FLU signs: positive roll lowers the right side, positive pitch the nose.
-* rotational dynamics (2) integrated on the Euler angles and their rates (small-angle model
-  of the paper, semi-implicit Euler): ``φ̈ = (Jy−Jz)/Jx θ̇ψ̇ + u_φ/Jx`` etc.
-* translational dynamics (2)-(3) in ENU: ``p̈ = γ u_z R e3 / m − g e3 + δ`` where
-  ``R e3`` is the third column of :func:`deckland_common.frames.rot_body_to_world` and
-  ``δ = F_drag / m`` the wind disturbance (quadratic body drag plus linear rotor drag on the
-  air-relative velocity).
-* ground effect (4): ``γ = 1 / (1 − ρ r² / (4 z_p)²)`` with the *true* ρ (``rho_true``) and
-  ``z_p`` from the rotor plane to the surface below, clamped at ``ge_min_rotor_height_m`` and
-  ``ge_max_gain``. Decision (paper ambiguous): (3) scales only the vertical thrust by γ; the
-  rotor thrust is what ground effect changes, so γ scales the whole thrust vector. For the
-  vertical axis this is exactly (3).
-* actuators: each motor is a first-order lag (``motor_tau_s``) between 0 and
-  ``thrust_to_weight · m g / 4``.
-* attitude controller emulating the autopilot's 400 Hz loop: angle P → rate PI, like PX4's
-  ``mc_att_control`` / ``mc_rate_control`` (gains in physical units, torque = J · α_cmd).
-  The collective thrust command passes through; when a motor would exceed its limit the
-  collective is lowered so the attitude torques are kept (attitude priority, as PX4's mixer).
+Pure and deterministic (no randomness; wind is an input), plain floats, one flat
+:meth:`Vehicle.step` (it runs at >= 400 Hz in campaigns). Plus configuration, motor 1 on the
+nose, 2 left, 3 tail, 4 right; rotational dynamics (2) on the Euler angles (semi-implicit);
+translational ``p̈ = γ u_z R e3 / m − g e3 + δ`` in ENU with δ the drag of the air-relative
+velocity; γ of (4) with the true ρ scales the whole thrust; first-order motors; a 400 Hz angle
+P → rate PI attitude loop like PX4's with attitude priority on saturation. The decisions and
+their tests are in the package README.
 """
 
 from __future__ import annotations
@@ -36,17 +16,8 @@ import math
 
 # (4) is one formula, shared with the controller side (the simulator's own ρ, r and clamps
 # are passed in; only the expression is common)
+from deckland_common.validate import is_finite_number, non_negative, positive, require
 from dob_altitude.ground_effect import ground_effect_gain
-
-
-def _positive(name: str, value: float) -> None:
-    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-        raise ValueError(f'{name} must be a finite number > 0, got {value!r}')
-
-
-def _non_negative(name: str, value: float) -> None:
-    if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-        raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,19 +56,19 @@ class VehicleParams:
                      'motor_tau_s', 'prop_radius_m', 'ge_min_rotor_height_m',
                      'gear_height_m', 'gear_half_width_m', 'att_p', 'yaw_p', 'rate_p',
                      'yaw_rate_p', 'max_rate_radps', 'max_yaw_rate_radps'):
-            _positive(name, getattr(self, name))
+            positive(name, getattr(self, name))
         for name in ('rho_true', 'rotor_height_m', 'drag_linear_n_per_mps',
                      'drag_quad_h_kg_per_m', 'drag_quad_v_kg_per_m', 'rate_i', 'yaw_rate_i',
                      'rate_i_limit_radps2'):
-            _non_negative(name, getattr(self, name))
-        if len(self.inertia_kgm2) != 3:
-            raise ValueError(f'inertia_kgm2 must have 3 entries, got {self.inertia_kgm2!r}')
+            non_negative(name, getattr(self, name))
+        require(len(self.inertia_kgm2) == 3, 'inertia_kgm2', 'must have 3 entries',
+                self.inertia_kgm2)
         for v in self.inertia_kgm2:
-            _positive('inertia_kgm2', v)
-        if not (isinstance(self.thrust_to_weight, int | float) and self.thrust_to_weight > 1.0):
-            raise ValueError(f'thrust_to_weight must be > 1, got {self.thrust_to_weight!r}')
-        if not (isinstance(self.ge_max_gain, int | float) and self.ge_max_gain >= 1.0):
-            raise ValueError(f'ge_max_gain must be >= 1, got {self.ge_max_gain!r}')
+            positive('inertia_kgm2', v)
+        require(is_finite_number(self.thrust_to_weight) and self.thrust_to_weight > 1.0,
+                'thrust_to_weight', 'must be > 1', self.thrust_to_weight)
+        require(is_finite_number(self.ge_max_gain) and self.ge_max_gain >= 1.0, 'ge_max_gain',
+                'must be >= 1', self.ge_max_gain)
 
     @property
     def motor_max_n(self) -> float:

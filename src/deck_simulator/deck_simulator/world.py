@@ -1,36 +1,26 @@
 """The simulated world: vehicle truth, heaving deck, wind, sensors and touchdown (pure).
 
-``World(scenario, seed)`` is the API of docs/interfaces.md. All randomness is drawn from
-``seed`` through independent named streams (``random.Random(f'{seed}:<name>')``, string seeds
-hash deterministically, for uniform draws; :func:`~deck_simulator.sensors.normal_stream`
-``f'{seed}:<name>:normal'`` for the Gaussian noise of each sensor and of the gusts), so e.g.
-reading the camera more often never changes the GPS noise.
-
-Contact model (beyond the paper, which only reports a successful landing):
-
-* ``pad``: the gear bottom (body origin − ``gear_height_m``) reaches the pad top while the
-  square gear footprint (half-width ``gear_half_width_m``) lies entirely inside the pad;
-* ``edge``: the footprint overlaps the pad rectangle only partly (or the vehicle runs into the
-  deck's side below its top) — a crash;
-* ``ground``: the gear reaches z = 0 with the footprint clear of the pad.
-
-After contact the vehicle rests on that surface (vertical state = the deck's, horizontal
-velocity = the deck's drift, level attitude, integrators reset) until its free-flight vertical
-acceleration exceeds the surface's (lift-off; not after an edge strike). Only the first
-contact is recorded in :attr:`World.contact`.
+``World(scenario, seed)`` is the API of docs/interfaces.md. Every random draw comes from a
+named stream of ``seed`` (``random.Random(f'{seed}:<name>')``, :func:`normal_stream` for the
+Gaussian noise), so e.g. reading the camera more often never changes the GPS noise. Contact:
+``pad`` (gear footprint inside the pad), ``edge`` (partly: a crash) or ``ground``; afterwards
+the vehicle rests on that surface until it lifts off (not after an edge strike); only the first
+contact is scored. With link faults (or a simulator node) the world also flies an autopilot
+(:mod:`deck_simulator.autopilot`) every sub-step. Decisions: the package README.
 """
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 import math
 import random
 
-from deckland_common.frames import rot_body_to_world, world_to_body_xy
+from deckland_common.frames import rot_body_to_world
 
+from deck_simulator.autopilot import Autopilot, EmulatedAutopilot, in_process_params
 from deck_simulator.deck import Deck, make_heave
-from deck_simulator.faults import FaultSet, _LinkFault
+from deck_simulator.faults import FaultSet
+from deck_simulator.link import CommandLink
 from deck_simulator.scenario import Scenario
 from deck_simulator.sensors import (
     Block,
@@ -45,12 +35,6 @@ from deck_simulator.sensors import (
 from deck_simulator.vehicle import Vehicle
 
 LIFTOFF_MARGIN_MPS2 = 0.2
-# offboard-loss failsafe (command_link): PX4-like hold, then land or return (the speeds,
-# the climb and the action are the link fault's keys, see faults._LinkFault)
-FAILSAFE_PERIOD_S = 0.01
-FAILSAFE_MAX_TILT_RAD = 0.3
-FAILSAFE_BRAKED_MPS = 0.3      # horizontal speed below which the hold point is fixed
-FAILSAFE_HOME_RADIUS_M = 0.3   # 'return': at home (and braked) → land
 GUST_UPDATE_S = 0.01 - 1e-9   # gusts (τ ~ s) are held over 10 ms
 
 
@@ -182,19 +166,14 @@ class World:
         cx0, cy0, _, _, _ = self.deck.state(0.0)
         self.faults: FaultSet | None = (FaultSet(sc.faults, seed, (cx0, cy0), self.deck_mean_m)
                                         if sc.faults else None)
-        # None | 'hold' | 'return' | 'land' (command_link only)
-        self.failsafe: str | None = None
-        self.home_m: tuple[float, float] | None = None   # where offboard was engaged (RTL)
-        self.link_stats: dict[str, int] = {'sent': 0, 'lost': 0, 'delayed': 0, 'failsafes': 0}
-        self._link_used = False
-        self._last_rx_t = 0.0
-        self._last_tx_t = 0.0
-        self._queue: deque = deque()
-        self._fs_t0 = 0.0
-        self._fs_next = 0.0
-        self._fs_ref = (0.0, 0.0, 0.0, 0.0)
-        self._fs_braked = False
-        self._timesync_rng: random.Random | None = None   # made on first use (timesync_rtt_s)
+        # the autopilot (deck_simulator.autopilot) and, in-process, the command link to it
+        # (deck_simulator.link): only with link faults, or attached by the simulator node
+        self.autopilot: Autopilot | None = None
+        self.link: CommandLink | None = None
+        if self.faults is not None and self.faults.has_link:
+            ap = EmulatedAutopilot(in_process_params(self.faults.link_spec), self)
+            self.autopilot = ap
+            self.link = CommandLink(self.faults, seed, ap, self.rejected)
 
     # --- commands and stepping -------------------------------------------------------------
 
@@ -215,189 +194,65 @@ class World:
         """Send a command over the emulated MAVLink link; True if it gets through.
 
         Without link faults this is :meth:`set_command`. With ``mavlink_loss`` /
-        ``mavlink_latency`` / ``mavlink_link_loss`` / ``node_kill`` faults a command sent at
-        ``t_s`` may be lost (False; the vehicle keeps the previous command) or queued and
-        applied ``latency_s`` later (FIFO, never reordered). When no command has been applied
-        for ``loss_timeout_s`` (PX4 COM_OF_LOSS_T, 1 s) the world's autopilot takes over
-        (:attr:`failsafe` = ``'hold'``: brake to rest, then hold that position and heading at
-        the altitude of the moment of loss, raised to ``min_alt_m``; after ``hold_s`` more the
-        fault's ``action``: ``'land'`` descends at ``land_speed_mps`` (0.7 m/s), zero thrust
-        once on a surface; ``'return'`` flies home — where the first command was sent — at
-        that altitude, then lands there). With ``reengage_offboard`` (default) the next
-        command that arrives ends the failsafe (the bridge re-engages offboard); without it
-        the autopilot stays in its failsafe, as PX4 does. Monitoring starts with
-        the first accepted call. A non-finite value or a ``t_s`` older than the previous call's
-        is rejected (``rejected['nan']`` / ``['out_of_order']``, False).
+        ``mavlink_latency`` / ``mavlink_link_loss`` / ``node_kill`` faults the command goes
+        through :class:`~deck_simulator.link.CommandLink` to the world's
+        :class:`~deck_simulator.autopilot.EmulatedAutopilot`: it may be lost (False; the
+        vehicle keeps the previous command) or applied ``latency_s`` later (FIFO). The first
+        accepted call engages OFFBOARD (home = here); when no command has arrived for
+        ``loss_timeout_s`` the autopilot's failsafe flies (:attr:`failsafe`): hold for
+        ``hold_s``, then the fault's ``action`` (land at ``land_speed_mps``, or return home
+        and land); ``reengage_offboard`` lets the next command end it. A non-finite value or
+        a ``t_s`` older than the previous call's is rejected (``rejected['nan']`` /
+        ``['out_of_order']``, False).
         """
-        fs = self.faults
-        if fs is None or not fs.has_link:
+        link = self.link
+        if link is None:
             before = self.rejected['nan']
             self.set_command(roll_rad, pitch_rad, yaw_rad, thrust_n)
             return self.rejected['nan'] == before
-        if not (math.isfinite(t_s) and math.isfinite(roll_rad) and math.isfinite(pitch_rad)
-                and math.isfinite(yaw_rad) and math.isfinite(thrust_n)):
-            self.rejected['nan'] += 1
-            return False
-        if not self._link_used:
-            self._link_used = True
-            self._last_rx_t = self._last_tx_t = t_s
-            self.home_m = (self.vehicle.x, self.vehicle.y)
-        elif t_s < self._last_tx_t:
-            self.rejected['out_of_order'] += 1
-            return False
-        self._last_tx_t = t_s
-        self.link_stats['sent'] += 1
-        delay = fs.link_fate(t_s)
-        cmd = (roll_rad, pitch_rad, yaw_rad, thrust_n)
-        if delay is None:
-            self.link_stats['lost'] += 1
-            return False
-        if delay > 0.0 or self._queue:
-            self.link_stats['delayed'] += delay > 0.0
-            self._queue.append((t_s + delay, cmd))
-            return True
-        self._deliver(t_s, cmd)
-        return True
+        return link.send(t_s, roll_rad, pitch_rad, yaw_rad, thrust_n)
 
     def timesync_rtt_s(self, t_s: float) -> float | None:
-        """The simulated MAVLink TIMESYNC: round trip (s) of a request sent at ``t_s`` through
-        the same impaired link as :meth:`command_link`, or None if it is lost.
-
-        Uplink: a ``mavlink_link_loss`` (or ``node_kill`` of the bridge) window cuts it;
-        each active ``mavlink_loss`` drops it with its probability (drawn from the world's own
-        stream ``f'{seed}:timesync'``, so measuring never shifts the command link's draws); the
-        active ``mavlink_latency`` delays it, and it queues behind commands still in flight
-        (FIFO, as the commands). Downlink: telemetry is not delayed in the in-process world
-        (as :class:`deck_simulator.node.ImpairedLink`'s default ``downlink='cut'``), so the
-        reply comes back at once unless a cut is active when it leaves. The autopilot answers
-        at once (PX4 replies to TIMESYNC in its receive thread). Pure apart from that stream;
-        a non-finite ``t_s`` is rejected (``rejected['nan']``, None).
-        """
+        """The simulated MAVLink TIMESYNC: round trip (s) of a request sent at ``t_s``
+        through the same link as :meth:`command_link` (0 without link faults), None if lost
+        (:meth:`deck_simulator.link.CommandLink.timesync_rtt_s`). A non-finite ``t_s`` is
+        rejected (``rejected['nan']``, None)."""
         if not math.isfinite(t_s):
             self.rejected['nan'] += 1
             return None
-        fs = self.faults
-        if fs is None or not fs.has_link:
+        link = self.link
+        if link is None:
             return 0.0
-        # a killed controller/planner/estimator does not stop the bridge answering TIMESYNC
-        cuts = [a for a in fs.link_cut
-                if a.name == 'mavlink_link_loss' or a.spec.node == 'mavlink_bridge']
-        for a in cuts:
-            if a.on <= t_s < a.off:
-                return None
-        for a in fs.link_loss:
-            if a.on <= t_s < a.off:
-                if self._timesync_rng is None:
-                    self._timesync_rng = random.Random(f'{self.seed}:timesync')
-                if self._timesync_rng.random() < a.spec.probability:
-                    return None
-        arrive = t_s
-        for a in fs.link_latency:
-            if a.on <= t_s < a.off and t_s + a.spec.latency_s > arrive:
-                arrive = t_s + a.spec.latency_s
-        if self._queue and self._queue[-1][0] > arrive:
-            arrive = self._queue[-1][0]
-        for a in cuts:   # the reply leaves at `arrive`
-            if a.on <= arrive < a.off:
-                return None
-        return arrive - t_s
+        return link.timesync_rtt_s(t_s)
 
-    def _deliver(self, t_s: float, cmd: tuple[float, float, float, float]) -> None:
-        self._last_rx_t = t_s
-        fs = self.faults
-        if self.failsafe is not None:
-            if fs is not None and not fs.link_spec.reengage_offboard:
-                return   # PX4 stays in its failsafe mode until someone switches it back
-            self.failsafe = None
-        self.set_command(*cmd)
+    def attach_autopilot(self, autopilot: Autopilot) -> None:
+        """Fly ``autopilot`` instead of the in-process one (the simulator node: the link
+        faults then act on the wire, so :meth:`command_link` becomes :meth:`set_command`)."""
+        self.autopilot = autopilot
+        self.link = None
 
-    def _link_tick(self, t: float) -> None:
-        """Per sub-step: deliver due commands, run the offboard-loss failsafe."""
-        q = self._queue
-        while q and q[0][0] <= t + 1e-12:
-            due, cmd = q.popleft()
-            self._deliver(due, cmd)
-        fs = self.faults
-        if fs is None:
-            return
-        spec = fs.link_spec
-        if self.failsafe is None:
-            if t - self._last_rx_t <= spec.loss_timeout_s:
-                return
-            v = self.vehicle
-            self.failsafe = 'hold'
-            self.link_stats['failsafes'] += 1
-            self._fs_t0 = t
-            self._fs_next = t
-            # hold the altitude of the moment of loss, or climb to min_alt_m first
-            self._fs_ref = (v.x, v.y, max(v.z, spec.min_alt_m), v.yaw)
-            self._fs_braked = False
-        if self.failsafe == 'hold' and t - self._fs_t0 >= spec.hold_s:
-            self.failsafe = 'return' if spec.action == 'return' else 'land'
-        if self.failsafe == 'return' and self._fs_braked:
-            v = self.vehicle
-            hx, hy = self.home_m if self.home_m is not None else (v.x, v.y)
-            if (math.hypot(v.x - hx, v.y - hy) <= FAILSAFE_HOME_RADIUS_M
-                    and v.vx * v.vx + v.vy * v.vy <= FAILSAFE_BRAKED_MPS ** 2
-                    and abs(v.z - self._fs_ref[2]) < 0.3):
-                self.failsafe = 'land'
-        if t >= self._fs_next - 1e-12:
-            self._fs_next = t + FAILSAFE_PERIOD_S
-            self._failsafe_command(spec)
+    @property
+    def failsafe(self) -> str | None:
+        """The autopilot's failsafe phase: None, ``'hold'``, ``'return'`` or ``'land'``."""
+        ap = self.autopilot
+        return ap.failsafe if ap is not None else None
 
-    def _failsafe_command(self, spec: _LinkFault) -> None:
-        """PX4-like position hold / return / land on truth: PD on position → tilt, (3)
-        inverted for thrust u_z = m (g + a_z) / (γ cφ cθ) with the true γ of (4).
+    @property
+    def link_stats(self) -> dict[str, int]:
+        """In-process link counters ``sent``, ``lost``, ``delayed`` and the autopilot's
+        ``failsafes``."""
+        out = dict(self.link.stats) if self.link is not None else {
+            'sent': 0, 'lost': 0, 'delayed': 0}
+        out['failsafes'] = self.autopilot.failsafes if self.autopilot is not None else 0
+        return out
 
-        hold: brake, hold that point and the altitude of the moment of loss raised to
-        ``min_alt_m`` (climbing at ``climb_speed_mps``); return (RTL): the hold point slews to
-        home (where offboard was engaged) at ``return_speed_mps`` at that altitude; land:
-        descend at ``land_speed_mps`` over the held point, zero thrust once resting.
-        """
+    def surface_below_vehicle(self) -> float:
+        """Height of the surface below the vehicle centre now: the pad top over the pad (and
+        above it), else the ground (0)."""
         v = self.vehicle
-        p = self.params
-        g = p.gravity_mps2
-        x0, y0, z0, yaw0 = self._fs_ref
-        if not self._fs_braked:
-            # PX4 Hold: brake first, then hold where the vehicle came to rest
-            if v.vx * v.vx + v.vy * v.vy > FAILSAFE_BRAKED_MPS ** 2:
-                x0, y0 = v.x, v.y
-            else:
-                self._fs_braked = True
-            self._fs_ref = (x0, y0, z0, yaw0)
-        elif self.failsafe == 'return' and self.home_m is not None:
-            ex, ey = self.home_m[0] - x0, self.home_m[1] - y0
-            n = math.hypot(ex, ey)
-            step = spec.return_speed_mps * FAILSAFE_PERIOD_S
-            if n > step:
-                ex, ey = ex * step / n, ey * step / n
-            x0, y0 = x0 + ex, y0 + ey
-            self._fs_ref = (x0, y0, z0, yaw0)
-        ax = 1.0 * (x0 - v.x) - 1.8 * v.vx
-        ay = 1.0 * (y0 - v.y) - 1.8 * v.vy
-        a_max = g * math.tan(FAILSAFE_MAX_TILT_RAD)
-        n = math.hypot(ax, ay)
-        if n > a_max:
-            ax, ay = ax * a_max / n, ay * a_max / n
-        fwd, left = world_to_body_xy(ax, ay, v.yaw)
-        pitch = math.atan2(fwd, g)
-        roll = -math.atan2(left, g)
-        if self.failsafe != 'land':
-            # PD on altitude; the error is capped so that a climb runs at climb_speed_mps
-            ez_max = spec.climb_speed_mps / 0.8
-            az = 2.0 * max(-ez_max, min(ez_max, z0 - v.z)) - 2.5 * v.vz
-        else:
-            az = 2.0 * (-spec.land_speed_mps - v.vz)
-        az = max(-0.5 * g, min(0.5 * g, az))
         cx, cy, ztop, _, _ = self._deck_now
         over = abs(v.x - cx) <= self.deck.half_x and abs(v.y - cy) <= self.deck.half_y
-        surface = ztop if over and v.z > ztop else 0.0
-        gamma = p.gamma(v.z + p.rotor_height_m - surface)
-        thrust = p.mass_kg * (g + az) / (gamma * math.cos(roll) * math.cos(pitch))
-        if self.failsafe == 'land' and self.resting_on is not None:
-            thrust = 0.0
-        v.cmd_roll, v.cmd_pitch, v.cmd_yaw = roll, pitch, yaw0
-        v.cmd_thrust = thrust
+        return ztop if over and v.z > ztop else 0.0
 
     def active_faults(self, t_s: float | None = None) -> tuple[str, ...]:
         """Types of the scenario faults active at ``t_s`` (default now), for logging."""
@@ -432,8 +287,11 @@ class World:
         cx, cy, ztop, dvz, daz = dk
         v = self.vehicle
         p = self.params
-        if self._link_used:
-            self._link_tick(self.t_s)
+        ap = self.autopilot
+        if ap is not None and ap.active:
+            if self.link is not None:
+                self.link.deliver_due(self.t_s)
+            ap.tick(self.t_s, self)
         # wind: mean + OU gusts, updated every GUST_UPDATE_S with the exact discretisation
         # g ← a g + σ √(1−a²) n, a = exp(−Δt/τ) (zero-order hold in between)
         g = self.gust

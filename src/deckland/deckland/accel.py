@@ -38,30 +38,37 @@ import tempfile
 PACKAGES = ('deckland_common', 'deck_simulator', 'apron_estimator', 'landing_planner',
             'dob_altitude')
 
-#: The modules a closed-loop run steps every tick. Scenario loading, validation helpers,
-#: the fault injection (its frozen dataclass hierarchy with class-level ``type`` names does not
-#: compile; it costs nothing in fault-free runs) and everything touching rclpy stay Python.
+#: The modules a closed-loop run steps every tick: the cores and the nodes' loop cores.
+#: Scenario loading, validation helpers, the fault injection (its frozen dataclass hierarchy
+#: with class-level ``type`` names does not compile; it costs nothing in fault-free runs) and
+#: everything touching rclpy stay Python.
 COMPILED_MODULES = (
+    'deckland_common.checks',
+    'deckland_common.contract',
     'deckland_common.frames',
+    'deck_simulator.autopilot',
     'deck_simulator.deck',
+    'deck_simulator.link',
     'deck_simulator.sensors',
     'deck_simulator.vehicle',
     'deck_simulator.world',
     'apron_estimator.camera',
     'apron_estimator.estimator',
     'apron_estimator.horizontal',
-    'apron_estimator.types',
+    'apron_estimator.inputs',
+    'apron_estimator.loop',
     'apron_estimator.vertical',
     'dob_altitude.adapter',
     'dob_altitude.dob',
     'dob_altitude.ground_effect',
+    'dob_altitude.loop',
     'dob_altitude.pid',
     'dob_altitude.types',
     'landing_planner.horizontal',
+    'landing_planner.loop',
     'landing_planner.planner',
     'landing_planner.reference',
     'landing_planner.search',
-    'landing_planner.types',
 )
 
 CORES_CHOICES = ('auto', 'python', 'compiled')

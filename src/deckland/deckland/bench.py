@@ -47,6 +47,8 @@ import threading
 import time
 import types
 
+from deckland_common.stats import percentile
+
 MS_MASK = 0xFFFFFFFF
 SET_ATTITUDE_TARGET_ID = 82
 MAVLINK1_STX = 0xFE
@@ -63,18 +65,6 @@ SIM_NODE = 'deck_simulator'
 
 
 # --- statistics ------------------------------------------------------------------------------
-
-def percentile(values: Sequence[float], q: float) -> float:
-    """The q-th percentile (0..100) with linear interpolation between order statistics
-    (numpy's default ``'linear'`` method); NaN for an empty sample or a q outside [0, 100]."""
-    if not values or not 0.0 <= q <= 100.0:
-        return math.nan
-    xs = sorted(values)
-    rank = q / 100.0 * (len(xs) - 1)
-    lo = math.floor(rank)
-    hi = min(lo + 1, len(xs) - 1)
-    return xs[lo] + (xs[hi] - xs[lo]) * (rank - lo)
-
 
 def summarize_ms(values_s: Sequence[float]) -> dict[str, float | int | None]:
     """``{'p50', 'p99', 'max', 'n'}`` in milliseconds of samples given in seconds (None when
@@ -409,7 +399,7 @@ class StreamRecorder:
     """Subscriptions on the monitor's node recording the stamp chain (wall arrival times)."""
 
     def __init__(self, node):
-        from apron_estimator.types import APRON_STATE_V1_FIELDS, APRON_STATE_V1_LEN
+        from deckland_common.contract import APRON_STATE_V1_FIELDS, APRON_STATE_V1_LEN
         from deckland_common.ros_node import SENSOR_QOS, stamp_to_s
         from sensor_msgs.msg import PointCloud
         from std_msgs.msg import Float64MultiArray

@@ -5,16 +5,17 @@ The campaign JSON is a stable interface (other tools read it)::
     {"scenario", "controller", "runs", "seed", "success_rate", "fallback_rate", "crash_rate",
      "horizontal_error_m": {"p50", "p95", "max"}, "touchdown_speed_mps": {"p50", "p95", "max"},
      "time_to_land_s": {"p50", "p95"}, "wall_time_s", "realtime_factor",
-     "workers", "realtime_factor_per_worker", "cores",
+     "workers", "realtime_factor_per_worker", "backend", "cores",
      "failures": [{"seed", "reason", "outcome"}],
      "outcomes": {"deck", "fallback", "hold", "crash", "unstable"}}
 
 ``realtime_factor`` is simulated seconds per wall-clock second over the whole campaign (all
 workers); ``realtime_factor_per_worker`` divides it by the worker processes used. ``cores`` is
 ``'compiled'`` when the mypyc build of the cores flew the runs (``deckland.accel``; identical
-results), ``'python'`` otherwise.
+results), ``'python'`` otherwise. ``backend`` is where the runs flew (``'local'`` process pool or
+``'ray'``, `deckland.backends`); no key but `HOW_RUN_KEYS` depends on how the runs were flown.
 
-``outcomes`` counts the runs of each safety class (``deckland.runner.classify``,
+``outcomes`` counts the runs of each safety class (``deck_simulator.outcome.classify``,
 docs/failsafe.md); a failure's ``outcome`` is its class.
 
 Run ``i`` of a campaign with seed ``S`` flies seed ``S * 100000 + i``; any failure listed in the
@@ -27,17 +28,23 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import multiprocessing as mp
-import os
 import pathlib
 import sys
 import time
 from typing import Any
 
-from deckland import accel
+from deckland_common.stats import percentile
+
+from deckland import accel, backends
+from deckland.backends import CampaignError, Chunk, LocalPool, RayBackend
 from deckland.runner import CONTROLLERS, RunConfig, RunResult, run_landing
 
 SEED_STRIDE = 100_000
+
+#: Report keys that say how a campaign was run, not what was flown: two reports of the same
+#: scenario, controller and seeds are identical but for these, whatever backend flew them.
+HOW_RUN_KEYS = ('wall_time_s', 'realtime_factor', 'realtime_factor_per_worker', 'workers',
+                'backend')
 
 
 def run_seed(campaign_seed: int, index: int) -> int:
@@ -45,20 +52,13 @@ def run_seed(campaign_seed: int, index: int) -> int:
     return campaign_seed * SEED_STRIDE + index
 
 
-def _percentile(values: list[float], q: float) -> float:
-    """Linear-interpolated percentile (numpy's default method), NaN for no data."""
-    if not values:
-        return math.nan
-    xs = sorted(values)
-    pos = (len(xs) - 1) * q / 100.0
-    lo = math.floor(pos)
-    hi = min(lo + 1, len(xs) - 1)
-    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
-
-
 def summarize(results: list[RunResult], scenario: str, controller: str, seed: int,
-              wall_time_s: float, workers: int = 1) -> dict[str, Any]:
-    """Aggregate run outcomes into the campaign report (see module docstring)."""
+              wall_time_s: float, workers: int = 1, cores: str | None = None,
+              backend: str = 'local') -> dict[str, Any]:
+    """Aggregate run outcomes into the campaign report (see module docstring).
+
+    ``cores``: what the workers flew (default: this process's); ``backend``: where.
+    """
     n = len(results)
     on_pad = [r for r in results if r.landed_on_deck]
     errors = [r.horizontal_error_m for r in on_pad]
@@ -70,7 +70,7 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
         out = {}
         for key in keys:
             value = max(xs) if (key == 'max' and xs) else (
-                math.nan if key == 'max' else _percentile(xs, float(key[1:])))
+                math.nan if key == 'max' else percentile(xs, float(key[1:])))
             out[key] = _json_float(value)
         return out
 
@@ -92,7 +92,8 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
         'workers': workers,
         'realtime_factor_per_worker': (round(sim_time / wall_time_s / workers, 1)
                                        if wall_time_s > 0 else 0.0),
-        'cores': accel.cores(),
+        'backend': backend,
+        'cores': cores or accel.cores(),
         'failures': [{'seed': r.seed, 'reason': r.reason, 'outcome': r.outcome}
                      for r in results if not r.success],
         'outcomes': {k: sum(r.outcome == k for r in results)
@@ -104,50 +105,65 @@ def _json_float(x: float) -> float | None:
     return None if not math.isfinite(x) else round(x, 4)
 
 
-def _worker(job: tuple[str, int, RunConfig]) -> RunResult:
-    scenario_name, seed, config = job
-    from deck_simulator.scenario import load_scenario
-    return run_landing(_cached_scenario(scenario_name, load_scenario), seed, config)
+#: Seeds per chunk at most: a Ray task costs ~2 ms, a run ~50-160 ms (FACTS.md).
+MAX_CHUNK = 100
 
 
-_SCENARIO_CACHE: dict[str, Any] = {}
+def chunk_size(runs: int, workers: int) -> int:
+    """Seeds per chunk: about 8 chunks per worker (balance), at most `MAX_CHUNK`."""
+    return max(1, min(MAX_CHUNK, math.ceil(runs / (8 * max(1, workers)))))
 
 
-def _cached_scenario(name, loader):
-    if name not in _SCENARIO_CACHE:
-        _SCENARIO_CACHE[name] = loader(name)
-    return _SCENARIO_CACHE[name]
+def make_chunks(scenario: str, runs: int, seed: int, config: RunConfig,
+                size: int) -> list[Chunk]:
+    """The campaign's seeds in consecutive chunks, with what a worker needs to fly them."""
+    from deck_simulator.scenario import builtin_names
+    text = None if scenario in builtin_names() else pathlib.Path(scenario).read_text('utf-8')
+    from deckland.runner import config_fields
+    blob = config_fields(config)
+    seeds = [run_seed(seed, i) for i in range(runs)]
+    return [Chunk(k, scenario, text, blob, tuple(seeds[i:i + size]),
+                  accel.status().get('dir'))
+            for k, i in enumerate(range(0, runs, size))]
 
 
 def run_campaign(scenario: str, runs: int, seed: int, config: RunConfig, workers: int = 0,
-                 progress: bool = True) -> tuple[dict[str, Any], list[RunResult]]:
-    """Run ``runs`` seeded landings on a process pool; return (report, per-run results)."""
+                 progress: bool = True, backend: LocalPool | RayBackend | None = None,
+                 chunk: int = 0) -> tuple[dict[str, Any], list[RunResult]]:
+    """Fly ``runs`` seeded landings on ``backend`` (default: a local pool of ``workers``).
+
+    Returns (report, per-run results sorted by seed). Raises `CampaignError` naming the seeds
+    of a chunk that failed for good; a report never silently lacks a run.
+    """
     from deck_simulator.scenario import load_scenario
-    scen = load_scenario(scenario)  # fail early on a bad scenario, before forking
-    workers = workers or os.cpu_count() or 1
-    jobs = [(scenario, run_seed(seed, i), config) for i in range(runs)]
+    scen = load_scenario(scenario)  # fail early on a bad scenario, before any worker starts
+    if runs < 1:
+        raise ValueError(f'runs must be >= 1, got {runs}')
+    backend = backend or LocalPool(workers)
+    chunks = make_chunks(scenario, runs, seed, config, chunk or chunk_size(runs, backend.workers))
     start = time.perf_counter()
     results: list[RunResult] = []
+    cores = set()
     label = f'{scen.name}/{config.controller}'
-    if workers == 1 or runs == 1:
-        for job in jobs:
-            results.append(_worker(job))
-            if progress:
-                _progress(label, len(results), runs, start)
-    else:
-        ctx = mp.get_context('fork' if sys.platform.startswith('linux') else 'spawn')
-        with ctx.Pool(workers, initializer=accel.worker_init,
-                      initargs=(accel.status().get('dir'),)) as pool:
-            for res in pool.imap_unordered(_worker, jobs, chunksize=max(1, runs // (workers * 8))):
-                results.append(res)
-                if progress:
-                    _progress(label, len(results), runs, start)
+    for done in backend.map(chunks):
+        results.extend(done.results)
+        cores.add(done.cores)
+        if progress:
+            _progress(label, len(results), runs, start)
     wall = time.perf_counter() - start
     if progress:
         sys.stderr.write('\n')
     results.sort(key=lambda r: r.seed)
-    used = 1 if (workers == 1 or runs == 1) else min(workers, runs)
-    return summarize(results, scen.name, config.controller, seed, wall, used), results
+    flown = [r.seed for r in results]
+    expected = [s for c in chunks for s in c.seeds]
+    if flown != expected:   # cannot happen with a correct backend; never report a gap
+        missing = sorted(set(expected) - set(flown))
+        raise CampaignError(f'campaign incomplete: {len(flown)} results for {runs} runs, '
+                            f'{len(missing)} seeds missing (first {missing[:5]})')
+    report = summarize(results, scen.name, config.controller, seed, wall,
+                       backend.used(len(chunks)), cores='+'.join(sorted(cores)),
+                       backend=backend.name)
+    return report, results
 
 
 def _progress(label: str, done: int, total: int, start: float) -> None:
@@ -222,12 +238,22 @@ def write_plots(per_controller: dict[str, list[RunResult]], out_dir: pathlib.Pat
 def _cmd_campaign(args: argparse.Namespace) -> int:
     controllers = list(CONTROLLERS) if args.compare else [args.controller]
     reports, per_controller = [], {}
-    for controller in controllers:
-        config = RunConfig(controller=controller, gains_profile=args.profile)
-        report, results = run_campaign(args.scenario, args.runs, args.seed, config,
-                                       workers=args.workers, progress=not args.quiet)
-        reports.append(report)
-        per_controller[controller] = results
+    backend = backends.from_args(args)
+    try:
+        if not args.quiet:
+            print(f'deckland: {backend.describe()}', file=sys.stderr)
+        for controller in controllers:
+            config = RunConfig(controller=controller, gains_profile=args.profile)
+            report, results = run_campaign(args.scenario, args.runs, args.seed, config,
+                                           progress=not args.quiet, backend=backend,
+                                           chunk=args.chunk)
+            reports.append(report)
+            per_controller[controller] = results
+    except CampaignError as exc:
+        print(f'deckland: {exc}', file=sys.stderr)
+        return 1
+    finally:
+        backend.close()
     print(format_table(reports))
     for report in reports:
         for failure in report['failures'][:10]:
@@ -277,7 +303,9 @@ def register(sub) -> None:
     p.add_argument('--controller', choices=CONTROLLERS, default='dob')
     p.add_argument('--profile', default='default', help="gains profile ('default' or 'paper')")
     p.add_argument('--compare', action='store_true', help='run every controller on the same seeds')
-    p.add_argument('--workers', type=int, default=0, help='processes (default: all cores)')
+    p.add_argument('--workers', type=int, default=0,
+                   help='processes, or CPUs of a private ray cluster (default: all cores)')
+    backends.add_arguments(p)
     p.add_argument('--out', help='write the JSON report here')
     p.add_argument('--plots', help='write PNG distributions into this directory')
     p.add_argument('--quiet', action='store_true', help='no progress bar')

@@ -47,7 +47,7 @@ from deckland_common.frames import (
 
 #: Planner modes that are not a landing (the trigger is the first mode outside this set).
 NOT_LANDING_MODES = frozenset({'IDLE', 'HOLD', 'TAKEOFF'})
-#: Planner mode names in ``landing_planner.types.Mode`` order (the runner's ``mode`` column
+#: Planner mode names in ``deckland_common.contract.Mode`` order (the runner's ``mode`` column
 #: stores the index into ``list(Mode)``).
 MODE_NAMES = ('IDLE', 'TAKEOFF', 'APPROACH', 'ALIGN', 'DESCEND', 'FINAL', 'SEARCH',
               'FALLBACK', 'HOLD', 'LANDED')
@@ -407,7 +407,7 @@ def _add_message(col: _Collector, rel: str, t: float, msg: Any,
 
 
 def _add_apron_state(col: _Collector, t: float, data: Any) -> None:
-    from apron_estimator.types import ApronState
+    from deckland_common.contract import ApronState
 
     try:
         s = ApronState.from_array(list(data))
@@ -457,7 +457,7 @@ def series_from_trace(trace: Mapping[str, Sequence[float]],
     """Time series from a runner trace (``RunResult.trace`` or a parsed CSV).
 
     ``trace['t']`` is required; other columns are mapped with :data:`CSV_COLUMNS`; ``mode``
-    holds the index into ``landing_planner.types.Mode``. Touchdown: the first sample (after
+    holds the index into ``deckland_common.contract.Mode``. Touchdown: the first sample (after
     the trigger) whose truth height above the surface is at or below
     :data:`CONTACT_HEIGHT_M` (the simulator's contact), else the first LANDED mode (the
     planner's detection, later by its confirmation time). Raises :class:`PlotError`

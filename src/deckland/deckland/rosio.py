@@ -215,10 +215,11 @@ def publisher_qos_from_offered(offered: list[Any], depth: int = 10) -> Any:
 
 @functools.lru_cache(maxsize=1)
 def typestore() -> Any:
-    """The rosbags typestore for Jazzy (message definitions and RIHS01 hashes)."""
-    from rosbags.typesys import Stores, get_typestore
+    """The rosbags typestore for Jazzy plus deckland_interfaces (message definitions and
+    RIHS01 hashes)."""
+    from deckland import msgtypes
 
-    return get_typestore(Stores.ROS2_JAZZY)
+    return msgtypes.typestore()
 
 
 def message_definition(type_str: str) -> tuple[str, str]:

@@ -1,11 +1,12 @@
-"""In-process closed-loop landing runs: the simulator plus the same cores the nodes run.
+"""In-process closed-loop landing runs: the simulator plus the loop cores the nodes run.
 
 One run is the paper's mission (section 4.2): hovering at the start, landing triggered at
 t = 0, GPS approach to the landing area, search if needed, precision landing, touchdown and
 disarm — or a fallback. Everything is stepped in lock-step at the real rates (physics 400 Hz,
 estimator/planner/controllers 100 Hz, camera 50 Hz with its latency), deterministically for a
-seed, without ROS. The wiring here mirrors the node graph (docs/interfaces.md): each block
-below corresponds to one node's callback.
+seed, without ROS. Each node of the graph (docs/interfaces.md) is its loop core here
+(``apron_estimator.loop``, ``landing_planner.loop``, ``dob_altitude.loop``), fed in the order
+its inputs arrive in one control tick.
 """
 
 from __future__ import annotations
@@ -16,13 +17,16 @@ import math
 from typing import Any
 
 from apron_estimator.estimator import ApronEstimator, EstimatorParams
-from apron_estimator.types import PixyBlock
+from apron_estimator.loop import EstimatorLoop
+from deck_simulator.outcome import RunOutcome, landing_outcome
 from deck_simulator.scenario import Scenario
 from deck_simulator.world import World
-from dob_altitude.adapter import altitude_input, make_controller, parse_vertical_frame
+from deckland_common.contract import Mode, PixyBlock, VehicleDescription
+from dob_altitude.adapter import make_controller
+from dob_altitude.loop import AltitudeLoop
 from landing_planner.horizontal import HorizontalController, HorizontalParams
+from landing_planner.loop import PlannerLoop
 from landing_planner.planner import LandingPlanner, PlannerParams
-from landing_planner.types import Mode, VehicleState
 from mavlink_bridge.core import LinkMonitor, LinkMonitorParams
 
 CONTROLLERS = ('dob', 'pid', 'constant-rate')
@@ -57,32 +61,24 @@ class RunConfig:
             raise ValueError('physics_hz must be >= 400 (the Pixhawk attitude loop rate)')
 
 
-@dataclass
-class RunResult:
-    """Outcome of one run (the fields of a campaign's per-run record)."""
+def config_fields(config: RunConfig) -> dict[str, Any]:
+    """``config`` as plain data (a worker rebuilds it after loading the compiled cores)."""
+    return asdict(config)
 
-    seed: int
-    scenario: str
-    controller: str
-    landed_on_deck: bool = False
-    success: bool = False
-    crash: bool = False
-    fallback: bool = False
-    contact_kind: str = 'none'
-    horizontal_error_m: float = math.nan
-    touchdown_speed_mps: float = math.nan
-    time_to_land_s: float = math.nan
-    searches: int = 0
-    max_thrust_n: float = 0.0
-    final_mode: str = ''
-    reason: str = ''
-    sim_time_s: float = 0.0
-    # fault campaigns (docs/failsafe.md): 'deck' | 'fallback' | 'hold' | 'crash' | 'unstable'
-    outcome: str = ''
-    failsafes: int = 0              # times the emulated autopilot's offboard-loss failsafe engaged
-    failsafe_mode: str = ''         # its mode at the end of the run ('' = offboard)
-    final_height_m: float = math.nan   # true height above the surface below at the end
-    final_speed_mps: float = math.nan  # true speed at the end (3-D)
+
+def config_from_fields(fields: dict[str, Any]) -> RunConfig:
+    """The inverse of :func:`config_fields` (validated again by the constructors)."""
+    monitor = fields.get('link_monitor')
+    return RunConfig(**{**fields, 'link_monitor':
+                        None if monitor is None else LinkMonitorParams(**monitor)})
+
+
+@dataclass
+class RunResult(RunOutcome):
+    """Outcome of one run (a campaign's per-run record): the simulator's outcome record
+    (:class:`deck_simulator.outcome.RunOutcome`) plus what the runner knows."""
+
+    controller: str = ''
     link_degraded_s: float = math.nan  # when the LinkMonitor stopped the commands (NaN: never)
     link_latency_s: float = math.nan   # its one-way latency estimate at the end
     trace: dict[str, list[float]] = field(default_factory=dict)
@@ -93,11 +89,22 @@ class RunResult:
         return out
 
 
-def make_altitude_controller(config: RunConfig):
+def vehicle_description(scenario: Scenario) -> VehicleDescription:
+    """The scenario's vehicle as the stack is told about it (``deckland up`` passes the same
+    to the altitude controller and the bridge): mass, and hover at 1 / thrust-to-weight."""
+    vp = scenario.vehicle
+    return VehicleDescription.from_thrust_to_weight(vp.mass_kg, vp.thrust_to_weight,
+                                                    vp.gravity_mps2)
+
+
+def make_altitude_controller(config: RunConfig, vehicle: VehicleDescription | None = None):
     """The altitude controller a run uses (the dob_altitude node makes the same choice)."""
+    mass = (vehicle or VehicleDescription()).mass_kg
     if config.controller == 'dob':
-        return make_controller('dob', config.gains_profile, dict(config.dob_overrides))
-    return make_controller('pid', config.gains_profile, dict(config.pid_overrides))
+        return make_controller('dob', config.gains_profile,
+                               {'mass_kg': mass, **dict(config.dob_overrides)})
+    return make_controller('pid', config.gains_profile,
+                           {'mass_kg': mass, **dict(config.pid_overrides)})
 
 
 def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
@@ -120,25 +127,27 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     """Fly one seeded landing of ``scenario`` and return its outcome."""
     config = config or RunConfig()
     world = World(scenario, seed)
-    estimator = ApronEstimator(EstimatorParams())
-    planner = LandingPlanner(planner_params_for(scenario, config))
-    altitude = make_altitude_controller(config)
-    vframe = 'surface'
-    vmode = None   # the planner's last vertical_mode string
-    horizontal = HorizontalController(HorizontalParams(**dict(config.horizontal_overrides)))
+    dt_ctrl = 1.0 / config.control_hz
+    estimator = EstimatorLoop(ApronEstimator(EstimatorParams()))
+    planner = PlannerLoop(LandingPlanner(planner_params_for(scenario, config)),
+                          HorizontalController(HorizontalParams(
+                              **dict(config.horizontal_overrides))), period_s=dt_ctrl)
+    # in-process the altitude loop flies through an invalid vertical estimate on the
+    # filter's prediction (the node withholds): the campaigns' behaviour, kept
+    altitude = AltitudeLoop(make_altitude_controller(config, vehicle_description(scenario)),
+                            period_s=dt_ctrl, surface_accel_ff=config.surface_accel_ff,
+                            require_valid_vertical=False)
     # --- mavlink_bridge's link monitor: TIMESYNC requests through the world's link --------
     monitor = LinkMonitor(config.link_monitor) if config.link_monitor is not None else None
     replies: list[tuple[float, float]] = []   # (t_received, t_sent), sorted
     commanding = True
 
-    result = RunResult(seed=seed, scenario=scenario.name, controller=config.controller)
     trace: dict[str, list[float]] = {k: [] for k in TRACE_FIELDS} if config.record else {}
     modes = list(Mode)
 
     dt = 1.0 / config.physics_hz
     ctrl_div = config.physics_hz // config.control_hz
     cam_div = config.physics_hz // config.camera_hz
-    dt_ctrl = 1.0 / config.control_hz
     n_steps = math.ceil(scenario.timeout_s * config.physics_hz)
 
     t_contact = None
@@ -146,11 +155,15 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     started = False
     settle_s = config.settle_after_contact_s
     landed = Mode.LANDED
+    enabled = True
     # bound once: the loop below runs physics_hz times per simulated second
     world_step = world.step
-    planner_step = planner.step
-    altitude_step = altitude.step
-    horizontal_step = horizontal.step
+    read_position, read_attitude = world.read_local_position, world.read_attitude
+    est_attitude, est_position = estimator.on_attitude, estimator.on_local_position
+    est_accel, est_lidar, est_publish = estimator.on_accel, estimator.on_lidar, estimator.publish
+    plan_pose, plan_velocity, plan_apron = planner.on_pose, planner.on_velocity, planner.on_apron
+    alt_attitude, alt_reference, alt_apron = (altitude.on_attitude, altitude.on_reference,
+                                              altitude.on_apron)
 
     for k in range(n_steps + 1):
         t = k * dt
@@ -167,105 +180,67 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                     rtt = world.timesync_rtt_s(t)
                     if rtt is not None:
                         insort(replies, (t + rtt, t))
-            pos, vel = world.read_local_position()
-            roll, pitch, yaw = world.read_attitude()
-            estimator.on_attitude(t, roll, pitch, yaw)
-            estimator.on_local_position(t, pos, vel)
-            estimator.on_accel(t, world.read_accel_world())
-            estimator.on_lidar(t, world.read_lidar())
+            pos, vel = read_position()
+            roll, pitch, yaw = read_attitude()
+            # --- the sensor topics reach the estimator, the planner, the altitude loop ----
+            est_attitude(t, t, roll, pitch, yaw)
+            est_position(t, t, pos, vel)
+            est_accel(t, t, world.read_accel_world())
+            est_lidar(t, t, world.read_lidar())
+            plan_pose(t, t, pos, roll, pitch, yaw)
+            plan_velocity(t, t, vel)
+            alt_attitude(t, t, roll, pitch)
         if frame is not None:
             # --- pixy_driver: the frame arrives now, stamped at its (earlier) exposure -------
-            estimator.on_camera(frame[0], [PixyBlock(*b) for b in frame[1]])
+            estimator.on_camera(t, frame[0], [PixyBlock(*b) for b in frame[1]])
         if ctrl:
-            # --- apron_estimator -> landing_planner -------------------------------------
-            apron = estimator.state(t)
+            # --- apron_estimator -> landing_planner -> dob_altitude -----------------------
+            apron = est_publish(t)
             if not started:
                 planner.start_landing(t)
                 started = True
-            vehicle = VehicleState(t, pos, vel, roll, pitch, yaw)
-            out = planner_step(t, dt_ctrl, vehicle, apron)
-            mode = out.mode
-            roll_cmd, pitch_cmd = horizontal_step(out.setpoint_m, out.velocity_ff_mps,
-                                                  (pos[0], pos[1]), (vel[0], vel[1]), yaw,
-                                                  dt_ctrl, precise=out.precise_xy)
-            # --- dob_altitude ------------------------------------------------------------
-            vert = apron.vertical
-            if out.vertical_mode != vmode:   # parse only when the planner's mode changes
-                vmode = out.vertical_mode
-                new_frame = parse_vertical_frame(vmode)
-                if new_frame != vframe:  # the node resets on a frame switch too
-                    altitude.reset()
-                    vframe = new_frame
-            inp = altitude_input(vert, out.z_d_m, out.z_d_dot_mps, out.z_d_ddot_mps2, vframe,
-                                 roll, pitch, surface_accel_ff=config.surface_accel_ff)
-            alt_out = altitude_step(inp, dt_ctrl)
-            thrust = alt_out.thrust_n if out.thrust_enabled else 0.0
-            if commanding:   # else the bridge has stopped streaming (LinkMonitor)
-                world.command_link(t, roll_cmd, pitch_cmd, out.yaw_rad, thrust)
-            if config.record:
+            tick = plan_apron(t, apron, dt_ctrl) if apron is not None else planner.watchdog(t)
+            alt_out = None
+            if tick is not None:
+                out = tick.output
+                mode = out.mode
+                if out.thrust_enabled is not enabled:    # control/enabled: latched, on change
+                    enabled = out.thrust_enabled
+                    altitude.on_enabled(enabled)
+                if tick.publish_reference:
+                    alt_reference(t, tick.stamp_s, out.vertical_mode, out.z_d_m,
+                                  out.z_d_dot_mps, out.z_d_ddot_mps2)
+                if apron is not None:
+                    alt_out = alt_apron(t, apron, None, dt_ctrl)
+                # the bridge streams only what it receives; disabled = disarmed (0 N)
+                command = tick.command
+                if commanding and command is not None and (alt_out is not None
+                                                           or not enabled):
+                    thrust = alt_out.thrust_n if alt_out is not None else 0.0
+                    world.command_link(t, command[0], command[1], out.yaw_rad, thrust)
+            if config.record and tick is not None and apron is not None:
                 truth = world.truth()
-                _record(trace, t, pos, truth, vert, apron, out, alt_out, modes.index(mode))
+                _record(trace, t, pos, truth, apron.vertical, apron, tick.output,
+                        alt_out or altitude.last_output, modes.index(mode))
         world_step(dt)
         if t_contact is None and world.contact is not None:
             t_contact = world.t_s
         if t_contact is not None and (world.t_s - t_contact >= settle_s or mode is landed):
             break
 
-    outcome = world.outcome()
-    result.max_thrust_n = outcome.max_thrust_n
-    result.final_mode = mode.name
-    result.searches = planner.searches
-    result.sim_time_s = world.t_s
-    if outcome.contact_kind == 'none':
-        result.reason = f'no touchdown within {scenario.timeout_s:.0f} s (mode {mode.name})'
-    else:
-        result.contact_kind = outcome.contact_kind
-        result.touchdown_speed_mps = outcome.touchdown_speed_mps
-        result.horizontal_error_m = outcome.horizontal_error_m
-        result.time_to_land_s = outcome.t_s
-        result.landed_on_deck = outcome.landed_on_deck
-        result.crash = outcome.crash
-        result.fallback = outcome.fallback
-        result.success = outcome.landed_on_deck and not outcome.crash
-        result.reason = outcome.reason
-    truth = world.truth()
-    result.failsafes = world.link_stats['failsafes']
-    result.failsafe_mode = world.failsafe or ''
-    result.final_height_m = truth.height_above_surface_m
-    result.final_speed_mps = math.hypot(*truth.velocity_mps)
+    rec = landing_outcome(world, seed, 0.0, planner.planner.searches, mode.name,
+                          f'no touchdown within {scenario.timeout_s:.0f} s (mode {mode.name})')
+    result = RunResult(**asdict(rec), controller=config.controller)
     if monitor is not None:
         result.link_degraded_s = monitor.degraded_since_s
         result.link_latency_s = monitor.latency_s
-    result.outcome = classify(result, truth.roll_rad, truth.pitch_rad)
     if config.record:
         result.trace = trace
     return result
 
 
-HOLD_MAX_SPEED_MPS = 0.5     # 'hold': airborne at the end and slower than this ...
-HOLD_MIN_HEIGHT_M = 0.3      # ... at least this high above the surface below ...
-HOLD_MAX_TILT_RAD = 0.35     # ... and not tilted more than this
-
-
-def classify(result: RunResult, roll_rad: float = 0.0, pitch_rad: float = 0.0) -> str:
-    """Safety class of a finished run (docs/failsafe.md): ``deck`` (landed on the pad),
-    ``fallback`` (a deliberate landing on the ground, not a crash), ``hold`` (no touchdown,
-    airborne and stable at the end), ``crash`` (edge strike, too fast or too tilted) or
-    ``unstable`` (no touchdown but not a stable hover: counted as unsafe)."""
-    if result.crash:
-        return 'crash'
-    if result.contact_kind == 'pad':
-        return 'deck'
-    if result.contact_kind == 'ground':
-        return 'fallback'
-    tilt = math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
-    if (result.final_speed_mps <= HOLD_MAX_SPEED_MPS and tilt <= HOLD_MAX_TILT_RAD
-            and result.final_height_m >= HOLD_MIN_HEIGHT_M):
-        return 'hold'
-    return 'unstable'
-
-
 def _record(trace, t, pos, truth, vert, apron, out, alt_out, mode_index) -> None:
+    nan = math.nan
     from deckland_common.frames import world_to_body_xy
     vx, vy, vz = truth.position_m
     bx, by = truth.beacon_position_m[0], truth.beacon_position_m[1]
@@ -275,8 +250,10 @@ def _record(trace, t, pos, truth, vert, apron, out, alt_out, mode_index) -> None
         'z_true': vz, 'deck_z': truth.deck_height_m, 'height_est': vert.height_m,
         'height_true': truth.height_above_surface_m, 'closing_est': vert.closing_speed_mps,
         'closing_true': truth.velocity_mps[2] - truth.deck_vz_mps, 'z_d': out.z_d_m,
-        'thrust': alt_out.thrust_n,
-        'sigma': alt_out.sigma, 'd_hat': alt_out.d_hat_mps2, 'visible': float(apron.visible),
+        'thrust': alt_out.thrust_n if alt_out is not None else nan,
+        'sigma': alt_out.sigma if alt_out is not None else nan,
+        'd_hat': alt_out.d_hat_mps2 if alt_out is not None else nan,
+        'visible': float(apron.visible),
         'tracked': float(apron.tracked), 'rel_x_body': apron.rel_position_body_m[0],
         'rel_y_body': apron.rel_position_body_m[1], 'rel_vx_body': apron.rel_velocity_body_mps[0],
         'rel_vy_body': apron.rel_velocity_body_mps[1], 'rel_x_body_true': rbx,

@@ -16,9 +16,12 @@ import argparse
 import itertools
 import json
 import pathlib
+import sys
 from typing import Any
 
+from deckland import backends
 from deckland.accel import add_cores_argument
+from deckland.backends import CampaignError, LocalPool, RayBackend
 from deckland.campaign import run_campaign
 from deckland.runner import RunConfig
 
@@ -40,7 +43,9 @@ def base_gains(controller: str, profile: str) -> dict[str, float]:
 
 
 def sweep(controller: str, scenarios: list[str], runs: int, seed: int, workers: int,
-          profile: str = 'default', scales=SCALES) -> dict[str, Any]:
+          profile: str = 'default', scales=SCALES,
+          backend: LocalPool | RayBackend | None = None, chunk: int = 0) -> dict[str, Any]:
+    """Every grid point on every scenario, flown on ``backend`` (default: a local pool)."""
     base = base_gains(controller, profile)
     names = GAINS[controller]
     points = []
@@ -52,7 +57,7 @@ def sweep(controller: str, scenarios: list[str], runs: int, seed: int, workers: 
         per_scenario = {}
         for scenario in scenarios:
             report, _ = run_campaign(scenario, runs, seed, config, workers=workers,
-                                     progress=False)
+                                     progress=False, backend=backend, chunk=chunk)
             per_scenario[scenario] = {
                 'cost': round(cost(report), 4), 'success_rate': report['success_rate'],
                 'crash_rate': report['crash_rate'],
@@ -70,8 +75,16 @@ def sweep(controller: str, scenarios: list[str], runs: int, seed: int, workers: 
 
 
 def _cmd_tune(args: argparse.Namespace) -> int:
-    result = sweep(args.controller, args.scenarios, args.runs, args.seed, args.workers,
-                   args.profile)
+    backend = backends.from_args(args)
+    try:
+        print(f'deckland: {backend.describe()}', file=sys.stderr)
+        result = sweep(args.controller, args.scenarios, args.runs, args.seed, args.workers,
+                       args.profile, backend=backend, chunk=args.chunk)
+    except CampaignError as exc:
+        print(f'deckland: {exc}', file=sys.stderr)
+        return 1
+    finally:
+        backend.close()
     best = result['best']
     print(f'best {args.controller}: {best["gains"]} cost {best["cost"]}')
     if args.out:
@@ -89,7 +102,9 @@ def register(sub) -> None:
     p.add_argument('--runs', type=int, default=40)
     p.add_argument('--seed', type=int, default=101, help='tuning seeds (keep apart from reports)')
     p.add_argument('--profile', default='default')
-    p.add_argument('--workers', type=int, default=0)
+    p.add_argument('--workers', type=int, default=0,
+                   help='processes, or CPUs of a private ray cluster (default: all cores)')
+    backends.add_arguments(p)
     p.add_argument('--out', help='write the whole sweep as JSON')
     add_cores_argument(p)
     p.set_defaults(func=_cmd_tune)

@@ -179,15 +179,33 @@ class MissionMonitor:
         self._thread.join(timeout=2.0)
 
 
+def vehicle_of(args, scenario) -> Any:
+    """The vehicle description the stack is given (one source for the altitude controller and
+    the bridge): the scenario's in simulation, ``--mass-kg`` / ``--hover-thrust-norm`` /
+    ``--thrust-expo`` on hardware (defaults: the paper's vehicle)."""
+    from deckland_common.contract import VehicleDescription
+
+    if scenario is not None:
+        from deckland.runner import vehicle_description
+        return vehicle_description(scenario)
+    d = VehicleDescription()
+    given = {'mass_kg': getattr(args, 'mass_kg', None),
+             'hover_thrust_norm': getattr(args, 'hover_thrust_norm', None),
+             'thrust_expo': getattr(args, 'thrust_expo', None)}
+    return VehicleDescription(**{k: (getattr(d, k) if v is None else float(v))
+                                 for k, v in given.items()})
+
+
 def graph_substitutions(args) -> dict[str, Any]:
     """The graph YAML's ``{placeholder}`` values for ``args`` (any object with ``scenario``,
     ``seed``, ``hardware``, ``mavlink``, ``pixy_port`` and ``area``): fresh loopback UDP ports,
-    and the scenario's camera latency and landing area (simulation) or the given ones
-    (hardware). Shared by ``deckland up`` and ``deckland bench``."""
+    the scenario's camera latency, landing area and vehicle (simulation) or the given ones
+    (hardware, :func:`vehicle_of`). Shared by ``deckland up`` and ``deckland bench``."""
     from deck_simulator.scenario import load_scenario
 
     hardware = bool(args.hardware)
     scenario = None if hardware else load_scenario(args.scenario)
+    vehicle = vehicle_of(args, scenario)
     mav_port, pixy_port = free_udp_port(), free_udp_port()
     # the bridge enters OFFBOARD only with a safe offboard-loss action: Land or Hold, and
     # Return where the scenario deliberately configures it (a return to the OFFBOARD point)
@@ -195,6 +213,8 @@ def graph_substitutions(args) -> dict[str, Any]:
         getattr(f, 'action', 'land') == 'return' for f in scenario.faults)
     return {
         'offboard_loss_actions': 'land,hold,return' if returns else 'land,hold',
+        'mass_kg': vehicle.mass_kg, 'gravity_mps2': vehicle.gravity_mps2,
+        'hover_thrust_norm': vehicle.hover_thrust_norm, 'thrust_expo': vehicle.thrust_expo,
         'scenario': args.scenario, 'seed': args.seed,
         'mavlink_url': args.mavlink or f'udpout:127.0.0.1:{mav_port}',
         'sim_mavlink_url': f'udpin:127.0.0.1:{mav_port}',
@@ -296,11 +316,15 @@ def _cmd_up(args: argparse.Namespace) -> int:
     hardware = bool(args.hardware)
     if hardware and not (args.mavlink and args.pixy_port):
         return fail('--hardware needs --mavlink URL and --pixy-port DEV')
+    if not hardware and any(getattr(args, k, None) is not None
+                            for k in ('mass_kg', 'hover_thrust_norm', 'thrust_expo')):
+        return fail('--mass-kg, --hover-thrust-norm and --thrust-expo are for --hardware '
+                    "(in simulation the scenario's vehicle is flown)")
     if not (args.timeout > 0 and args.startup_timeout > 0):
         return fail('--timeout and --startup-timeout must be > 0')
     try:
         scenario = None if hardware else load_scenario(args.scenario)
-        subs = graph_substitutions(args)
+        subs = graph_substitutions(args)   # a bad --mass-kg etc.: ValueError naming it
         graph = load_graph(args.graph or default_graph_path(), subs, hardware)
         record = prepare_record_dir(args.record) if args.record else None
     except (ValueError, OSError) as exc:
@@ -502,6 +526,12 @@ def register(sub) -> None:
     p.add_argument('--pixy-port', help='Pixy serial device (hardware)')
     p.add_argument('--area', type=float, nargs=2, default=(0.0, 0.0), metavar=('X', 'Y'),
                    help='landing-area position in map (hardware)')
+    p.add_argument('--mass-kg', type=float,
+                   help="vehicle mass (hardware; default the paper's 2.71 kg)")
+    p.add_argument('--hover-thrust-norm', type=float,
+                   help='normalised thrust that hovers, PX4 MPC_THR_HOVER (hardware; default 0.5)')
+    p.add_argument('--thrust-expo', type=float,
+                   help='thrust-curve expo e, PX4 THR_MDL_FAC (hardware; default 0)')
     p.add_argument('--params', help='ROS 2 parameters YAML passed to every node')
     p.add_argument('--graph', help='graph YAML (default: the packaged graph)')
     p.add_argument('--record', help='record a bag (and report.json) into this directory')

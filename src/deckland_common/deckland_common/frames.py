@@ -1,22 +1,12 @@
 """Frame conventions shared by every deckland package (pure, no rclpy).
 
-ROS side (REP-103): world frame ``map`` is ENU (x east, y north, z up); the body frame
-``base_link`` is FLU (x forward, y left, z up). Attitude is the intrinsic Z-Y-X sequence
-(yaw ψ about world z, then pitch θ about the new y, then roll φ about body x), so the
-body-to-world rotation is ``R = Rz(ψ) Ry(θ) Rx(φ)``. Its third column,
-``R e3 = [cφ sθ cψ + sφ sψ, cφ sθ sψ − sφ cψ, cφ cθ]``, is exactly the thrust direction in the
-paper's model (2). Consequences worth remembering:
-
-* positive pitch (FLU) tilts the nose *down* and accelerates the vehicle forward;
-* positive roll (FLU) lowers the right side and accelerates the vehicle to the right (−y);
-* yaw 0 points the nose east; yaw π/2 points it north.
-
-NED/FRD exists only at the MAVLink boundary: ``roll_frd = roll_flu``, ``pitch_frd = −pitch_flu``,
-``yaw_ned = π/2 − yaw_enu``; positions and velocities map ``(x, y, z)_ned = (y, x, −z)_enu``.
-
-Camera optical frame (``camera_optical``, REP-103 optical convention): x right in the image,
-y down in the image, z out of the lens. The default down-looking mount has the image top toward
-the nose, so optical x = body −y, optical y = body −x, optical z = body −z.
+World ``map`` ENU, body ``base_link`` FLU (REP-103); attitude the intrinsic Z-Y-X sequence,
+``R = Rz(ψ) Ry(θ) Rx(φ)`` body → world, whose third column is the thrust direction of the
+paper's model (2): positive pitch noses down and accelerates forward, positive roll lowers the
+right side (accelerates to −y), yaw 0 points east. NED/FRD only at the MAVLink boundary
+(:func:`euler_enu_flu_to_ned_frd` and friends). Received orientations → Euler angles with the
+norm check: :func:`attitude_from_quaternion`. The conventions in full, with the camera's
+optical frame: docs/interfaces.md, "Frames".
 """
 
 from __future__ import annotations
@@ -90,6 +80,35 @@ def quaternion_to_euler(w: float, x: float, y: float, z: float) -> Vec3:
     pitch = math.asin(sinp)
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return roll, pitch, yaw
+
+
+#: Largest accepted | |q| − 1 | of a received orientation quaternion before it is refused.
+QUATERNION_NORM_TOLERANCE = 0.05
+
+
+def normalised_quaternion(w: float, x: float, y: float, z: float,
+                          tolerance: float = QUATERNION_NORM_TOLERANCE
+                          ) -> tuple[float, float, float, float] | None:
+    """(w, x, y, z) scaled to unit norm, or None if not finite or | |q| − 1 | > tolerance."""
+    if not (math.isfinite(w) and math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return None
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if abs(n - 1.0) > tolerance:
+        return None
+    return w / n, x / n, y / n, z / n
+
+
+def attitude_from_quaternion(w: float, x: float, y: float, z: float,
+                             tolerance: float = QUATERNION_NORM_TOLERANCE) -> Vec3 | None:
+    """A received orientation (``base_link`` in ``map``) → Z-Y-X (roll, pitch, yaw) in rad.
+
+    None when the quaternion is not finite or not (nearly) unit
+    (:func:`normalised_quaternion`); otherwise it is normalised first.
+    """
+    q = normalised_quaternion(w, x, y, z, tolerance)
+    if q is None:
+        return None
+    return quaternion_to_euler(q[0], q[1], q[2], q[3])
 
 
 def wrap_pi(angle_rad: float) -> float:

@@ -1,7 +1,8 @@
-"""Thin rclpy helpers shared by every deckland node: parameters, QoS, and ``main()``.
+"""Thin rclpy helpers shared by every deckland node: parameters, QoS, stamps, the
+guarded-input mixin and ``main()``.
 
 Nodes stay adapters: declare the :class:`~deckland_common.params.ParamSpec` rows, convert
-messages to the pure cores' dataclasses and back, and publish. Nothing algorithmic lives here.
+messages to the pure cores' plain inputs and back, and publish. Nothing algorithmic lives here.
 """
 
 from __future__ import annotations
@@ -12,8 +13,10 @@ import os
 import sys
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
@@ -24,6 +27,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
+from deckland_common.checks import InputGuard
 from deckland_common.params import ParameterError, ParamSpec, validate
 
 #: High-rate sensor streams (camera blocks, lidar, IMU): best effort, keep last 5.
@@ -40,15 +44,19 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 def declare_and_validate(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]:
     """Declare each spec with its description, read the values, validate them all.
 
-    Raises :class:`ParameterError` on the first bad value.
+    Raises :class:`ParameterError` on the first bad value (also for a value of the wrong
+    type, which rclpy refuses while declaring: the message names the node).
     """
     specs = list(specs)
     values = {}
     for spec in specs:
         descriptor = ParameterDescriptor(description=spec.description + (
             f' ({spec.rule})' if spec.rule else ''))
-        values[spec.name] = node.declare_parameter(spec.name, spec.default,
-                                                   descriptor).value
+        try:
+            values[spec.name] = node.declare_parameter(spec.name, spec.default,
+                                                       descriptor).value
+        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            raise ParameterError(f'{node.get_name()}: {exc}') from exc
     return validate(values, specs)
 
 
@@ -68,6 +76,61 @@ def s_to_stamp(t_s: float, stamp) -> Any:
 def all_finite(*values: float) -> bool:
     """True when every value is a finite float (the gate in front of every core)."""
     return all(math.isfinite(v) for v in values)
+
+
+class GuardedNode:
+    """Mixin for a node whose pure loop core counts what it rejects and withholds.
+
+    :meth:`attach_guard` shares the core's ``rejected`` / ``withheld`` dicts with the node
+    (the node's own message-level rejections, :meth:`_reject`, count in the same dict) and
+    routes the core's hooks to throttled warnings; :meth:`_now_s` is the node clock in
+    seconds and :meth:`_counter_values` the diagnostics rows of both counters. Mix into an
+    ``rclpy.node.Node`` subclass.
+    """
+
+    rejected: dict[str, int]
+    withheld: dict[str, int]
+    get_clock: Callable[[], Any]     # provided by rclpy.node.Node
+    get_logger: Callable[[], Any]
+    _withheld_text = 'publishing nothing'
+
+    def attach_guard(self, guard: InputGuard, withheld_text: str) -> None:
+        self.rejected = guard.rejected
+        self.withheld = guard.withheld
+        self._withheld_text = withheld_text
+        guard.on_reject = self._log_reject
+        guard.on_withhold = self._log_withheld
+
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _log_reject(self, reason: str, what: str) -> None:
+        self.get_logger().warn(
+            f'rejected {what}: {reason} ({self.rejected.get(reason, 0)} so far)',
+            throttle_duration_sec=2.0)
+
+    def _log_withheld(self, reason: str) -> None:
+        self.get_logger().warn(f'{self._withheld_text}: {reason}',
+                               throttle_duration_sec=2.0)
+
+    def _reject(self, reason: str, what: str) -> None:
+        """Count and log a message the node refuses before its core sees it."""
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self._log_reject(reason, what)
+
+    def _counter_values(self) -> dict[str, str]:
+        """``rejected_<reason>`` and ``withheld_<reason>`` diagnostics values."""
+        values = {f'rejected_{k}': str(v) for k, v in self.rejected.items()}
+        values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
+        return values
+
+    def _publish_status(self, publisher: Any, status: DiagnosticStatus,
+                        values: dict[str, str]) -> None:
+        """``status`` with ``values`` as one DiagnosticArray on ``publisher``, stamped now."""
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        publisher.publish(msg)
 
 
 #: Environment variable choosing the executor of :func:`run_node`: ``events`` (default) or

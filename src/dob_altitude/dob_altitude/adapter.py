@@ -1,22 +1,11 @@
 """Wiring of the altitude controllers to the estimator and planner (pure, no rclpy).
 
-One implementation shared by the ROS node (:mod:`dob_altitude.node`) and the in-process runner
-(``deckland.runner``): which controller a configuration builds, and how an estimated
-:class:`~apron_estimator.types.VerticalState` plus a planner reference become the controller's
-:class:`~dob_altitude.types.AltitudeInput`.
-
-Vertical frames of the reference (paper §3.1 and the constant-rate baseline):
-
-* ``'surface'`` (the paper): z is the body origin's height above the surface below,
-  z = z_v − z_s, and ż its rate (closing speed), so (6)-(9) are written in the deck's frame and
-  the DOB (18) lumps the deck heave into d. Optionally the estimated surface acceleration a_s is
-  fed forward (beyond the paper; dob.py derivation, README decision 8).
-* ``'world'`` (the deck-blind constant-rate baseline): z is the vehicle's world altitude z_v and
-  ż its vertical speed; the deck's motion is not seen by the loop at all, so no a_s.
-
-In both frames the nominal ground-effect gain γ̄ of (4) uses the rotor plane's height above the
-*surface* (z_p = h + rotor offset): ground effect depends on what is under the rotors, not on
-the reference frame.
+:func:`make_controller` builds the controller of a configuration; :func:`altitude_input` turns
+an estimated :class:`~deckland_common.contract.VerticalState` plus a planner reference into the
+controller's :class:`~dob_altitude.types.AltitudeInput` in the reference's vertical frame
+(``deckland_common.contract.VERTICAL_FRAMES``): ``'relative'`` (the paper: z = z_v − z_s, the
+DOB (18) lumps the heave into d) or ``'world_rate'`` (the deck-blind baseline: z = z_v). In
+both, γ̄ of (4) uses the rotor plane's height above the *surface* (z_p = h + rotor offset).
 """
 
 from __future__ import annotations
@@ -24,9 +13,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import fields, replace
 import math
-from typing import TypeVar
+from typing import Any, TypeVar
 
-from apron_estimator.types import VerticalState
+from deckland_common.contract import (
+    VERTICAL_FRAMES,
+    VERTICAL_RELATIVE,
+    VERTICAL_WORLD_RATE,
+    VerticalState,
+)
 
 from dob_altitude.dob import DobAltitudeController, DobParams
 from dob_altitude.ground_effect import ground_effect_gain
@@ -37,17 +31,8 @@ from dob_altitude.types import AltitudeInput
 CONTROLLER_KINDS = ('dob', 'pid')
 #: Gain profiles both parameter classes know.
 GAIN_PROFILES = ('default', 'paper')
-#: Vertical frames :func:`altitude_input` understands.
-VERTICAL_FRAMES = ('surface', 'world')
 #: Default rotor plane above the body origin (docs/interfaces.md, vehicle geometry).
 ROTOR_HEIGHT_OFFSET_M = 0.05
-
-# Names other components use for the same frames (landing_planner's PlannerOutput.vertical_mode
-# says 'relative' / 'world_rate'; an empty joint name means the default, 'surface').
-_FRAME_ALIASES = {
-    '': 'surface', 'surface': 'surface', 'relative': 'surface',
-    'world': 'world', 'world_rate': 'world',
-}
 
 AltitudeController = DobAltitudeController | PidAltitudeController
 
@@ -76,6 +61,23 @@ def make_controller(kind: str, profile: str = 'default',
                      f'got {kind!r}')
 
 
+#: The gain fields of each kind; a node parameter below zero means "the profile's value".
+GAIN_FIELDS = {'dob': ('k', 'lam', 'gamma_obs'), 'pid': ('kp', 'ki', 'kd')}
+
+
+def controller_overrides(values: Mapping[str, Any]) -> dict[str, float]:
+    """The controller fields set by the node's parameters ``values``: the gains of its
+    ``controller`` kind that are given and >= 0, and the vehicle's mass and thrust limits."""
+    out: dict[str, float] = {}
+    for name in GAIN_FIELDS[str(values['controller'])]:
+        v = values.get(name)
+        if isinstance(v, (int, float)) and v >= 0.0:
+            out[name] = float(v)
+    for name in ('mass_kg', 'thrust_min_n', 'thrust_max_n'):
+        out[name] = float(values[name])
+    return out
+
+
 _P = TypeVar('_P', DobParams, PidParams)
 
 
@@ -92,39 +94,30 @@ def _profile_params(cls: type[_P], profile: str, overrides: Mapping[str, float] 
     return params
 
 
-def parse_vertical_frame(name: str) -> str | None:
-    """Normalise a vertical-frame name to ``'surface'`` / ``'world'``; None if unknown.
-
-    Accepts the planner's ``vertical_mode`` spellings too (``'relative'``, ``'world_rate'``)
-    and ``''`` (unset → ``'surface'``, the paper's frame). Case and surrounding blanks ignored.
-    """
-    return _FRAME_ALIASES.get(name.strip().lower())
-
-
 def altitude_input(vertical: VerticalState, z_d_m: float, z_d_dot_mps: float,
                    z_d_ddot_mps2: float, vertical_frame: str, roll_rad: float,
                    pitch_rad: float, rotor_height_offset_m: float = ROTOR_HEIGHT_OFFSET_M,
                    surface_accel_ff: bool = False) -> AltitudeInput:
     """The controller input of one sample (model (6), error (7)-(8), γ̄ of (4)).
 
-    ``'surface'``: z = h = ``vertical.height_m`` (z_v − z_s), ż = ``closing_speed_mps``;
+    ``'relative'``: z = h = ``vertical.height_m`` (z_v − z_s), ż = ``closing_speed_mps``;
     a_s = ``surface_accel_mps2`` if ``surface_accel_ff`` else 0 (the paper).
-    ``'world'``: z = ``vehicle_altitude_m``, ż = ``vehicle_vz_mps``, a_s = 0 always.
+    ``'world_rate'``: z = ``vehicle_altitude_m``, ż = ``vehicle_vz_mps``, a_s = 0 always.
     Both: ``rotor_height_m`` = h + ``rotor_height_offset_m`` (z_p of (4)).
 
     A pure mapping: it does not judge ``vertical.valid`` or finiteness (the caller gates, the
     controller rejects and counts non-finite inputs).
 
     Raises:
-        ValueError: ``vertical_frame`` is not ``'surface'`` / ``'world'`` (a programming
-            error; normalise received names with :func:`parse_vertical_frame`).
+        ValueError: ``vertical_frame`` is not one of ``VERTICAL_FRAMES`` (a programming
+            error; normalise received names with ``contract.parse_vertical_frame``).
     """
     h = vertical.height_m
-    if vertical_frame == 'surface':
+    if vertical_frame == VERTICAL_RELATIVE:
         return AltitudeInput(h, vertical.closing_speed_mps, z_d_m, z_d_dot_mps, z_d_ddot_mps2,
                              roll_rad, pitch_rad, h + rotor_height_offset_m,
                              vertical.surface_accel_mps2 if surface_accel_ff else 0.0)
-    if vertical_frame == 'world':
+    if vertical_frame == VERTICAL_WORLD_RATE:
         return AltitudeInput(vertical.vehicle_altitude_m, vertical.vehicle_vz_mps, z_d_m,
                              z_d_dot_mps, z_d_ddot_mps2, roll_rad, pitch_rad,
                              h + rotor_height_offset_m, 0.0)

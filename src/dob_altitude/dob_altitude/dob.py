@@ -1,49 +1,20 @@
 """Disturbance-observer-based (DOB) altitude controller, paper §3.1, eqs. (6)-(19).
 
-Model (6) of the *relative* height z = z_vehicle − z_surface (body origin above the surface):
-
-    z̈ = −g + (γ̄/m) cφ cθ u_z + d                                                 (6)
-
-where the lumped disturbance d collects the external disturbance δ of (3), the ground-effect
-mismatch (cφcθ/m) Δγ u_z of (5) and — because z is measured from a moving surface — minus the
-surface's own vertical acceleration a_s. With e_z = z − z_d (7):
-
-    σ   = ė_z + Λ e_z (e_z² + 1)^(−1/2)                                             (14)
-    ζ   = Λ ė_z (e_z² + 1)^(−3/2)            (= d/dt of the second term of (14))   (17)
-    d̂   = μ + Γ σ                                                                  (18)
-    μ̇   = −Γ μ − Γ [−g − z̈_d + (γ̄/m) cφ cθ u_z + ζ + Γ σ]                            (19)
-    u_z = m / (γ̄ cφ cθ) · [−K ė_z − K Λ e_z (e_z² + 1)^(−1/2) − ζ + g + z̈_d − d̂]    (16)
-
-so that σ̇ = −K σ + d̃ (20) and d̂̇ = Γ d̃, i.e. d̃̇ = ḋ − Γ d̃ (22), d̃ = d − d̂ (the paper
-prints d̂̇ on the left of (22); it is d̃̇).
-
-Paper typos handled here (see README): (16) is obtained by substituting (15) — not (16) — into
-(13), and the γ̃ printed in (16), (19), (20), (21) is the nominal γ̄ of (5)-(6).
-
-Beyond the paper (both reduce to it exactly with their neutral values):
-
-* ``surface_accel_mps2`` a_s: d = d_r − a_s with a_s known, so a_s is moved out of d and into
-  the feed-forward. It enters every equation exactly like z̈_d (replace z̈_d by z̈_d + a_s in
-  (16) and (19)); the observer then estimates only the remainder d_r. Derivation in README.
-* The observer integrates the thrust actually applied (the saturated command, or
-  ``applied_thrust_n``), so d̂ does not wind up under saturation.
-* Discretisation: substituting (18) into (19) gives d̂̇ = Γ (σ̇ − f − d̂) with
-  f = −g − z̈_d − a_s + (γ̄/m) cφcθ u_z + ζ, a first-order low-pass of the "measured"
-  disturbance σ̇ − f. It is discretised exactly for an input held over the sample interval:
-  d̂_k = a d̂_{k−1} + (1 − a) [(σ_k − σ_{k−1})/Δt − f̄], a = e^(−Γ Δt), f̄ with the applied
-  thrust and the trapezoidal mean of ζ − g − z̈_d − a_s; μ_k = d̂_k − Γ σ_k (18) is kept as the
-  state. For Γ Δt → 0 this is the forward-Euler step of (19); unlike that step it makes d̃
-  decay by exactly e^(−Γ Δt) per sample for a constant d and is stable for every Δt.
-* Start-up: the first sample after :meth:`reset` sets d̂ = 0 (μ = −Γσ: no disturbance known)
-  instead of μ = 0, which would inject Γσ as a thrust kick on engagement.
-* Guards: the tilt used in 1/(cφ cθ) is limited to ``max_tilt_rad``; |d̂| ≤
-  ``d_hat_limit_mps2`` (a projection: μ is moved with it); u_z ∈ [thrust_min_n, thrust_max_n].
+Model (6) of the relative height z = z_vehicle − z_surface, z̈ = −g + (γ̄/m) cφ cθ u_z + d,
+with the lumped disturbance d (external δ, ground-effect mismatch, minus the surface's own
+acceleration); e_z = z − z_d (7). Sliding variable σ (14), ζ (17), observer d̂ = μ + Γσ (18)
+with μ̇ (19), control law u_z (16): σ̇ = −Kσ + d̃ (20), d̃̇ = ḋ − Γd̃ (22). Paper typos (15 into
+13; γ̃ is the nominal γ̄), the surface-acceleration feed-forward a_s, the exact discretisation
+of the observer, the observer on the applied thrust, the bumpless start (d̂ = 0) and the
+tilt/d̂/thrust guards: package README, decisions.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
 import math
+
+from deckland_common.contract import GRAVITY_MPS2, PAPER_MASS_KG
 
 from dob_altitude.ground_effect import ground_effect_gain
 from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection
@@ -61,8 +32,8 @@ class DobParams:
     Gains are easy to override: ``dataclasses.replace(DobParams(), k=2.0)``.
     """
 
-    mass_kg: float = 2.71  # m, Table 2
-    gravity_mps2: float = 9.81  # g, Table 2
+    mass_kg: float = PAPER_MASS_KG  # m, Table 2 (the shared vehicle description)
+    gravity_mps2: float = GRAVITY_MPS2  # g, Table 2
     k: float = PAPER_K  # K of (15)-(16)
     lam: float = PAPER_LAM  # Λ of (14)-(17)
     gamma_obs: float = PAPER_GAMMA_OBS  # Γ of (18)-(19)

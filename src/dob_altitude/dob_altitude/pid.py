@@ -1,34 +1,20 @@
 """PID altitude controller: the classic baseline the paper compares against (Table 1, [27]).
 
-Same plant (6), same interface and the same γ̄ (4), tilt compensation and saturation as the DOB
-controller; only the disturbance handling differs:
-
-    a_cmd = −K_p e_z − K_d ė_z − K_i ∫e_z dt
-    u_z   = m / (γ̄ cφ cθ) · [a_cmd + g + z̈_d + a_s]
-
-ė_z is the measured rate (z_dot − z_d_dot), never a differentiated height. The integral uses
-conditional integration (clamping anti-windup): a sample's e_z is not integrated when the
-command is saturated, or the actuator reported less/more thrust than commanded, in the
-direction that integrating would push further. |K_i ∫e_z| ≤ ``integral_limit_mps2``.
-
-Matched gains. Linearised around e_z = 0 (e_z (e_z²+1)^(−1/2) ≈ e_z, ζ ≈ Λ ė_z) the DOB law
-(16)-(19) is *exactly* this PID with
-
-    K_d = K + Λ + Γ,   K_p = K Λ + K Γ + Λ Γ,   K_i = K Λ Γ
-
-(closed-loop poles −K, −Λ, −Γ; derivation in the README). :meth:`PidParams.from_dob` builds
-those gains, and the ``'default'`` profile is matched to ``DobParams()``, so a comparison
-isolates what the DOB adds: the bounded sliding variable, the observer anti-windup and the
-bumpless start rather than a different bandwidth.
-
-Outputs for comparison: ``sigma`` is (14) with ``lam``; ``d_hat_mps2`` = K_i ∫e_z, the
-integral term expressed as the acceleration it cancels (the counterpart of d̂ in (16)).
+Same plant (6), interface, γ̄ (4), tilt compensation and saturation as the DOB controller:
+a_cmd = −K_p e_z − K_d ė_z − K_i ∫e_z dt, u_z = m / (γ̄ cφ cθ) · [a_cmd + g + z̈_d + a_s], with
+the measured rate ė_z and conditional-integration anti-windup (|K_i ∫e_z| bounded). Its
+default gains are the DOB law (16)-(19) linearised at e_z = 0 — K_d = K + Λ + Γ,
+K_p = KΛ + KΓ + ΛΓ, K_i = KΛΓ (:meth:`PidParams.from_dob`) — so a comparison isolates what
+the DOB adds. ``sigma`` is (14) with ``lam``; ``d_hat_mps2`` = K_i ∫e_z. Package README,
+decision 10.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 import math
+
+from deckland_common.contract import GRAVITY_MPS2, PAPER_MASS_KG
 
 from dob_altitude.dob import (
     PAPER_GAMMA_OBS,
@@ -49,8 +35,8 @@ class PidParams:
     Default gains are matched to the paper's DOB gains (Table 4) — see :meth:`from_dob`.
     """
 
-    mass_kg: float = 2.71
-    gravity_mps2: float = 9.81
+    mass_kg: float = PAPER_MASS_KG
+    gravity_mps2: float = GRAVITY_MPS2
     kp: float = PAPER_K * PAPER_LAM + PAPER_K * PAPER_GAMMA_OBS + PAPER_LAM * PAPER_GAMMA_OBS
     ki: float = PAPER_K * PAPER_LAM * PAPER_GAMMA_OBS
     kd: float = PAPER_K + PAPER_LAM + PAPER_GAMMA_OBS

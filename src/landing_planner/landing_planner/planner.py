@@ -16,9 +16,7 @@ from dataclasses import dataclass, fields
 import math
 from typing import TYPE_CHECKING
 
-from landing_planner.reference import ReferenceGenerator, ReferenceLimits
-from landing_planner.search import SearchPattern
-from landing_planner.types import (
+from deckland_common.contract import (
     VERTICAL_RELATIVE,
     VERTICAL_WORLD_RATE,
     Mode,
@@ -26,8 +24,11 @@ from landing_planner.types import (
     VehicleState,
 )
 
+from landing_planner.reference import ReferenceGenerator, ReferenceLimits
+from landing_planner.search import SearchPattern
+
 if TYPE_CHECKING:  # pragma: no cover - typing only
-    from apron_estimator.types import ApronState
+    from deckland_common.contract import ApronState
 
 __all__ = ['LandingPlanner', 'Mode', 'PlannerOutput', 'PlannerParams', 'VehicleState']
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import math
 import struct
 
+from deckland_common.contract import VehicleDescription
 from deckland_common.frames import (
     euler_enu_flu_to_ned_frd,
     euler_ned_frd_to_enu_flu,
@@ -118,6 +119,10 @@ def rates_frd_to_flu(p: float, q: float, r: float) -> Vec3:
 
 # --- thrust calibration --------------------------------------------------------------------
 
+#: The paper's vehicle (Table 2): the defaults of every vehicle-dependent number here.
+_VEHICLE = VehicleDescription()
+
+
 @dataclass(frozen=True, slots=True)
 class ThrustCalibration:
     """Newtons ↔ normalised collective thrust (SET_ATTITUDE_TARGET.thrust, 0..1).
@@ -143,10 +148,10 @@ class ThrustCalibration:
     boosts it by 1/cos(tilt) unless ``ATC_ANGLE_BOOST = 0`` (the bridge checks that parameter).
     """
 
-    mass_kg: float = 2.71            # paper Table 2
-    gravity_mps2: float = 9.81
-    hover_thrust_norm: float = 0.5
-    expo: float = 0.0
+    mass_kg: float = _VEHICLE.mass_kg                    # the shared vehicle description
+    gravity_mps2: float = _VEHICLE.gravity_mps2
+    hover_thrust_norm: float = _VEHICLE.hover_thrust_norm
+    expo: float = _VEHICLE.thrust_expo
     norm_min: float = 0.0
     norm_max: float = 1.0
 
@@ -172,8 +177,17 @@ class ThrustCalibration:
                 'must lie strictly inside (norm_min, norm_max)')
 
     @classmethod
-    def from_max_thrust(cls, max_thrust_n: float, expo: float, mass_kg: float = 2.71,
-                        gravity_mps2: float = 9.81, **kwargs: float) -> ThrustCalibration:
+    def from_vehicle(cls, vehicle: VehicleDescription, **kwargs: float) -> ThrustCalibration:
+        """The calibration of a :class:`~deckland_common.contract.VehicleDescription`."""
+        return cls(mass_kg=vehicle.mass_kg, gravity_mps2=vehicle.gravity_mps2,
+                   hover_thrust_norm=vehicle.hover_thrust_norm, expo=vehicle.thrust_expo,
+                   **kwargs)
+
+    @classmethod
+    def from_max_thrust(cls, max_thrust_n: float, expo: float,
+                        mass_kg: float = _VEHICLE.mass_kg,
+                        gravity_mps2: float = _VEHICLE.gravity_mps2,
+                        **kwargs: float) -> ThrustCalibration:
         """Build from a measured total maximum thrust (bench test) instead of the hover point."""
         if not (math.isfinite(max_thrust_n) and max_thrust_n > mass_kg * gravity_mps2):
             raise ValueError(f'ThrustCalibration.max_thrust_n = {max_thrust_n!r}: must exceed '

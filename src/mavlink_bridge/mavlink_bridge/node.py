@@ -18,6 +18,7 @@ import time
 
 os.environ.setdefault('MAVLINK20', '1')  # before pymavlink.mavutil picks its dialect
 
+from deckland_common.contract import VehicleDescription
 from deckland_common.frames import euler_to_quaternion, rot_body_to_world
 from deckland_common.params import (
     ParameterError,
@@ -61,6 +62,8 @@ from mavlink_bridge.tcp import ReconnectingTcp
 
 _load_signing_key = load_signing_key   # the earlier private name
 
+_VEHICLE = VehicleDescription()
+
 
 def _actions(value: str) -> tuple[str, ...]:
     return tuple(a.strip().lower() for a in str(value).split(',') if a.strip())
@@ -76,12 +79,14 @@ PARAMS = [
     in_range('system_id', 1, 1, 255, "our MAVLink system id (normally the vehicle's)"),
     in_range('component_id', 191, 1, 255, 'our component id (191 = onboard computer)'),
     in_range('target_component', 1, 0, 255, 'autopilot component id'),
-    positive('mass_kg', 2.71, 'vehicle mass for the thrust calibration (paper Table 2)'),
-    positive('gravity_mps2', 9.81, 'gravity for the thrust calibration'),
-    ParamSpec('hover_thrust_norm', 0.5,
+    positive('mass_kg', _VEHICLE.mass_kg,
+             'vehicle mass for the thrust calibration (paper Table 2; deckland up passes the '
+             'vehicle description)'),
+    positive('gravity_mps2', _VEHICLE.gravity_mps2, 'gravity for the thrust calibration'),
+    ParamSpec('hover_thrust_norm', _VEHICLE.hover_thrust_norm,
               'normalised thrust that hovers (PX4 MPC_THR_HOVER, ArduPilot MOT_THST_HOVER)',
               lambda v: 0.0 < v < 1.0, 'must be in (0, 1)'),
-    in_range('thrust_expo', 0.0, 0.0, 1.0,
+    in_range('thrust_expo', _VEHICLE.thrust_expo, 0.0, 1.0,
              'residual thrust curve expo e in F = Fmax(e n^2 + (1-e) n); 0 = linear'),
     positive('input_timeout_s', 0.2, 'max age of control/thrust and control/attitude'),
     positive('link_timeout_s', 3.0, 'autopilot heartbeat age that means link lost'),

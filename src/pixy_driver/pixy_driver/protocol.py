@@ -1,32 +1,12 @@
 """CMUcam5 Pixy (v1) block protocol: incremental parser and encoder (pure, no rclpy).
 
-Wire format (Pixy v1 "data out" over UART; also what the simulator sends over UDP), all words
-16-bit little-endian::
-
-    frame      := SYNC block+                     (a frame marker, then its blocks)
-                | SYNC ZERO ZERO                  (a frame with no blocks)
-    block      := SYNC  checksum sig x y w h      (normal block, 6 words after its sync)
-                | SYNC_CC checksum sig x y w h angle   (colour-code block)
-    SYNC = 0xaa55, SYNC_CC = 0xaa56, ZERO = 0x0000
-    checksum = (sig + x + y + w + h [+ angle]) mod 2**16
-
-A frame therefore starts with two sync words in a row (the frame marker and the sync of its
-first block). Two zero words are the protocol's "no data" marker; the parser takes them as the
-end of the current frame. The word 0x55aa where a sync word is expected means the stream is one
-byte out of step; the parser drops bytes until it finds the byte pair ``55 aa`` again (which
-drops exactly one byte in that case).
-
-The paper (Section 3, eqs. (29)-(30)) consumes the pixel coordinates ``x_AP^cam``, ``y_AP^cam``
-of the beacon image; this module only delivers them, unaltered, with the Pixy's image axes
-(x right 0..319, y down 0..199). The conversion to metres lives in ``apron_estimator``.
-
-Latency: on a continuous stream a frame is known to be complete only when the next frame's
-double sync (or a no-data marker) arrives, so :meth:`PixyParser.feed` returns a frame one frame
-period (20 ms at 50 frames/s) after its last byte arrived. Every frame carries ``end_offset``,
-the stream offset just past its last byte, so a caller that logs when each read arrived can
-stamp the frame with the arrival of its own last byte (see :mod:`pixy_driver.arrival`). Where
-one datagram is one frame (UDP from the simulator), :meth:`PixyParser.feed_datagram` (= feed
-then :meth:`PixyParser.flush`) returns the frame at once.
+The Pixy v1 "data out" words (16-bit little-endian, over UART or one frame per UDP datagram
+from the simulator): a frame is ``SYNC block+`` or ``SYNC ZERO ZERO``, a block ``SYNC checksum
+sig x y w h`` (``SYNC_CC`` + angle for colour codes), checksum the 16-bit sum of the fields.
+Pixel coordinates are delivered unaltered (x right 0..319, y down 0..199: the ``x_cam``,
+``y_cam`` of (29)-(30)). On a stream a frame is complete only when the next double sync
+arrives (one frame period late); each frame carries ``end_offset`` for arrival stamping
+(:mod:`pixy_driver.arrival`). Wire format, resync and latency: the package README.
 """
 
 from __future__ import annotations
@@ -36,18 +16,7 @@ from dataclasses import dataclass
 import math
 import struct
 
-try:  # the estimator's block type, when that package is installed (same field names)
-    from apron_estimator.types import PixyBlock
-except ImportError:  # pragma: no cover - depends on the workspace
-    @dataclass(frozen=True, slots=True)
-    class PixyBlock:
-        """Local stand-in with the field names of ``apron_estimator.types.PixyBlock``."""
-
-        signature: int
-        x_px: float
-        y_px: float
-        width_px: float
-        height_px: float
+from deckland_common.contract import PixyBlock
 
 __all__ = [
     'ANGLE_MAX_DEG',

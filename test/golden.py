@@ -1,26 +1,12 @@
-"""Golden-bag regression: record a reference ``paper`` landing, replay it, compare.
+"""Golden-bag regression (test tooling): record a reference ``paper`` landing, replay, compare.
 
-``python -m deckland.golden record DIR`` (``make golden``) flies one ``paper`` landing with the
-real node graph and writes a small rosbag2 MCAP bag into ``DIR`` holding only what a replay
-needs, plus ``DIR/golden.yaml`` (scenario, seed, window, the nodes' effective parameters).
-Regenerating it is deliberate: nothing in the tests ever writes it.
-
-Two replays (tests: ``test/test_golden_cores.py`` and ``test/test_golden_nodes.py``):
-
-* :func:`replay_cores` (pure, no rclpy): the recorded inputs are fed in the bag's order into
-  :class:`~apron_estimator.estimator.ApronEstimator` (through :mod:`apron_estimator.inputs`,
-  exactly as the estimator node does), and the planner and the altitude controller are stepped
-  on each recorded ``apron/state`` exactly as their nodes do. Outputs are matched to the
-  recorded ones by stamp and compared with :data:`CORE_TOLERANCES`.
-* :func:`replay_nodes` (ROS): the estimator, planner and altitude nodes run in-process, the
-  bag's input topics are played with :func:`deckland.bag.play` (rate 1.0) and their outputs
-  are compared with the looser :data:`NODE_TOLERANCES`.
-
-Why the bag starts at the first input (not at the landing trigger): every core has memory (the
-filters, the planner's reference generator and horizontal integrator, the observer μ of (19));
-replaying from mid-flight would start them from another state. The nodes do nothing before
-their first input, so the replay of the whole window starts from the same state as the nodes.
-See ``src/deckland/README-golden.md`` for the tolerances and why they are what they are.
+``python test/golden.py record DIR`` (``make golden``) flies one landing with the real node
+graph and writes a small rosbag2 MCAP bag plus ``DIR/golden.yaml``; regenerating it is
+deliberate. :func:`replay_cores` feeds the recorded inputs in bag order through the nodes'
+loop cores (``apron_estimator.loop``, ``landing_planner.loop``, ``dob_altitude.loop``), no
+rclpy; :func:`replay_nodes` plays them into the three nodes over DDS. :func:`compare` matches
+outputs by stamp against :data:`CORE_TOLERANCES` / :data:`NODE_TOLERANCES`. Tolerances and the
+reasons behind them: ``src/deckland/README-golden.md``.
 """
 
 from __future__ import annotations
@@ -39,6 +25,8 @@ import tempfile
 import time
 from typing import Any
 
+from deckland_common.contract import VehicleDescription
+from deckland_common.stats import percentile
 import yaml
 
 #: Inputs of the three nodes (the replay feeds these) and the landing trigger's witness.
@@ -66,7 +54,8 @@ NODE_DEFAULTS: dict[str, dict[str, Any]] = {
                         'position_pair_tolerance_s': 0.005},
     'landing_planner': {'rate_hz': 100.0, 'input_timeout_s': 0.3, 'map_frame': 'map',
                         'landing_area_x_m': 0.0, 'landing_area_y_m': 0.0},
-    'dob_altitude': {'controller': 'dob', 'gains_profile': 'default', 'mass_kg': 2.71,
+    'dob_altitude': {'controller': 'dob', 'gains_profile': 'default',
+                     'mass_kg': VehicleDescription().mass_kg,
                      'thrust_min_n': 2.66, 'thrust_max_n': 53.17,
                      'rotor_height_offset_m': 0.05, 'surface_accel_feedforward': False,
                      'rate_hz': 100.0, 'input_timeout_s': 0.2},
@@ -253,7 +242,7 @@ def make_cores(meta: dict[str, Any]) -> tuple[Any, Any, Any, Any]:
     :func:`dob_altitude.adapter.make_controller` with the node's override rule.
     """
     from apron_estimator.estimator import ApronEstimator, EstimatorParams
-    from dob_altitude.adapter import make_controller
+    from dob_altitude.adapter import controller_overrides, make_controller
     from landing_planner.horizontal import HorizontalController, HorizontalParams
     from landing_planner.planner import LandingPlanner, PlannerParams
 
@@ -261,11 +250,8 @@ def make_cores(meta: dict[str, Any]) -> tuple[Any, Any, Any, Any]:
     dp = node_params(meta, 'dob_altitude')
     planner = LandingPlanner(PlannerParams(
         landing_area_m=(float(pp['landing_area_x_m']), float(pp['landing_area_y_m']))))
-    gains = {'dob': ('k', 'lam', 'gamma_obs'), 'pid': ('kp', 'ki', 'kd')}[dp['controller']]
-    overrides = {k: dp[k] for k in gains if k in dp and dp[k] >= 0.0}
-    overrides.update(mass_kg=dp['mass_kg'], thrust_min_n=dp['thrust_min_n'],
-                     thrust_max_n=dp['thrust_max_n'])
-    controller = make_controller(dp['controller'], dp['gains_profile'], overrides)
+    controller = make_controller(dp['controller'], dp['gains_profile'],
+                                 controller_overrides(dp))
     return (ApronEstimator(EstimatorParams()), planner, HorizontalController(HorizontalParams()),
             controller)
 
@@ -284,285 +270,39 @@ class Replay:
     notes: dict[str, int] = field(default_factory=dict)
 
 
-def _count(d: dict[str, int], key: str) -> None:
-    d[key] = d.get(key, 0) + 1
+def _count(d: dict[str, int], key: str, n: int = 1) -> None:
+    if n:
+        d[key] = d.get(key, 0) + n
 
 
-class _EstimatorFeed:
-    """The estimator node's input handling (node.py ``_on_*``) on decoded events."""
-
-    def __init__(self, est: Any, p: dict[str, Any], rejected: dict[str, int]) -> None:
-        from apron_estimator.inputs import LocalPositionPairer
-
-        self.est = est
-        self.timeout = p['input_timeout_s']
-        self.g = p['gravity_mps2']
-        self.pairer = LocalPositionPairer(p['position_pair_tolerance_s'])
-        self.rejected = rejected
-
-    def _fresh(self, now: float, t: float) -> bool:
-        if now - t > self.timeout or t - now > self.timeout:
-            _count(self.rejected, 'estimator_stamp')
-            return False
-        return True
-
-    def feed(self, now: float, e: Event) -> None:
-        from apron_estimator.inputs import (
-            blocks_from_cloud,
-            lidar_range,
-            normalised_quaternion,
-            world_accel_from_specific_force,
-        )
-        from deckland_common.frames import quaternion_to_euler
-
-        k, d = e.kind, e.data
-        if k == 'imu':
-            t, q_raw, cov0, acc = d
-            if not self._fresh(now, t) or cov0 == -1.0:
-                return
-            q = normalised_quaternion(*q_raw)
-            if q is None:
-                _count(self.rejected, 'estimator_quaternion')
-                return
-            self.est.on_attitude(t, *quaternion_to_euler(*q))
-            a = world_accel_from_specific_force(q, acc, self.g)
-            if a is not None and max(abs(c) for c in acc) <= 16.0 * 9.80665:
-                self.est.on_accel(t, a)
-        elif k in ('odom', 'velocity'):
-            t = d[0]
-            if not self._fresh(now, t):
-                return
-            pair = (self.pairer.on_position(t, d[2]) if k == 'odom'
-                    else self.pairer.on_velocity(t, d[2]))
-            if pair is not None:
-                self.est.on_local_position(pair.t_s, pair.position_m, pair.velocity_mps)
-        elif k == 'range':
-            t, r, lo, hi = d
-            if self._fresh(now, t):
-                self.est.on_lidar(t, lidar_range(r, lo, hi))
-        elif k == 'blocks':
-            t, xs, ys, ch = d
-            if not self._fresh(now, t):
-                return
-            blocks = blocks_from_cloud(xs, ys, ch)
-            if blocks is None:
-                _count(self.rejected, 'estimator_cloud')
-                return
-            self.est.on_camera(t, blocks)
+def _feed_estimator(loop: Any, now: float, e: Event) -> None:
+    """One decoded input event into the estimator node's loop core (as the node unpacks it)."""
+    k, d = e.kind, e.data
+    if k == 'imu':
+        loop.on_imu(now, d[0], d[1], d[3], has_orientation=d[2] != -1.0)
+    elif k == 'odom':
+        loop.on_position(now, d[0], d[2])
+    elif k == 'velocity':
+        loop.on_velocity(now, d[0], d[2])
+    elif k == 'range':
+        loop.on_range(now, d[0], d[1], d[2], d[3])
+    elif k == 'blocks':
+        loop.on_blocks(now, d[0], d[1], d[2], d[3])
 
 
-class _PlannerFeed:
-    """The planner node's callbacks and ``_step`` (landing_planner/node.py) on events."""
+def _estimator_loop(est: Any, meta: dict[str, Any]) -> Any:
+    from apron_estimator.loop import EstimatorLoop
 
-    def __init__(self, planner: Any, horizontal: Any, p: dict[str, Any], out: Replay) -> None:
-        self.planner, self.horizontal, self.out = planner, horizontal, out
-        self.period = 1.0 / p['rate_hz']
-        self.timeout = p['input_timeout_s']
-        self.map = p['map_frame']
-        self.apron_t: float | None = None
-        self.odom: tuple | None = None
-        self.vel: tuple | None = None
-        self.landed = False
-        self.t_step: float | None = None
-        self.last_stamp = -math.inf
-        self.enabled: bool | None = None
-        self.mode = planner.mode
-
-    def _ok(self, now: float, stamp: float, last: float | None) -> bool:
-        if not math.isfinite(stamp) or (last is not None and stamp < last):
-            _count(self.out.rejected, 'planner_order')
-            return False
-        if now - stamp > self.timeout or stamp - now > self.timeout:
-            _count(self.out.rejected, 'planner_stamp')
-            return False
-        return True
-
-    def feed(self, now: float, e: Event) -> None:
-        from deckland_common.frames import quaternion_to_euler
-
-        k, d = e.kind, e.data
-        if k == 'odom':
-            t, frame, pos, q = d
-            n = math.sqrt(sum(c * c for c in q))
-            if frame != self.map or abs(n - 1.0) > 0.05:
-                return
-            if self._ok(now, t, self.odom[0] if self.odom else None):
-                roll, pitch, yaw = quaternion_to_euler(*(c / n for c in q))
-                self.odom = (t, pos, roll, pitch, yaw)
-        elif k == 'velocity':
-            t, frame, v = d
-            if frame == self.map and self._ok(now, t, self.vel[0] if self.vel else None):
-                self.vel = (t, v)
-        elif k == 'landed':
-            self.landed = d[0]
-
-    def start_landing(self, now: float) -> None:
-        ok, _ = self.planner.start_landing(now)
-        _count(self.out.notes, 'start_landing_ok' if ok else 'start_landing_refused')
-        self._mode(now)
-
-    def on_apron(self, now: float, st: Any) -> None:
-        if not self._ok(now, st.t_s, self.apron_t):
-            return
-        self.apron_t = st.t_s
-        self.step(now, st)
-
-    def _mode(self, now: float) -> None:
-        if self.planner.mode is not self.mode:
-            self.mode = self.planner.mode
-            self.out.modes.append((now, self.mode.name))
-
-    def step(self, now: float, apron: Any) -> None:
-        from deckland_common.frames import euler_to_quaternion, quaternion_to_euler
-        from landing_planner.types import VehicleState
-
-        if self.odom is None or self.vel is None:
-            return
-        if self.t_step is not None and now <= self.t_step:
-            _count(self.out.notes, 'planner_clock_not_advancing')
-            return
-        dt = now - self.t_step if self.t_step is not None else self.period
-        if dt > self.timeout:
-            dt = self.period
-        self.t_step = now
-        stamp, pos, roll, pitch, yaw = self.odom
-        v_stamp, vel = self.vel
-        fresh = now - stamp <= self.timeout and now - v_stamp <= self.timeout
-        nan3 = (math.nan,) * 3
-        vehicle = VehicleState(
-            t_s=stamp if fresh else now, position_m=pos if fresh else nan3,
-            velocity_mps=vel if fresh else nan3, roll_rad=roll if fresh else math.nan,
-            pitch_rad=pitch if fresh else math.nan, yaw_rad=yaw if fresh else math.nan,
-            landed=self.landed)
-        o = self.planner.step(now, dt, vehicle, apron)
-        self._mode(now)
-        self.enabled = o.thrust_enabled
-        if not fresh:
-            _count(self.out.notes, 'planner_vehicle_stale')
-            return
-        r, p = self.horizontal.step(o.setpoint_m, o.velocity_ff_mps, (pos[0], pos[1]),
-                                    (vel[0], vel[1]), yaw, dt, precise=o.precise_xy)
-        s = max(apron.t_s, self.last_stamp)
-        self.last_stamp = s
-        q = euler_to_quaternion(0.0, 0.0, o.yaw_rad)
-        self.out.reference[s] = (o.vertical_mode, (o.setpoint_m[0], o.setpoint_m[1], o.z_d_m),
-                                 (o.velocity_ff_mps[0], o.velocity_ff_mps[1], o.z_d_dot_mps),
-                                 o.z_d_ddot_mps2, quaternion_to_euler(*q)[2])
-        if o.thrust_enabled:
-            self.out.attitude[s] = (r, p, o.yaw_rad)
+    p = node_params(meta, 'apron_estimator')
+    return EstimatorLoop(est, input_timeout_s=p['input_timeout_s'],
+                         gravity_mps2=p['gravity_mps2'],
+                         position_pair_tolerance_s=p['position_pair_tolerance_s'],
+                         imu_min_spacing_s=0.5 / p['rate_hz'])
 
 
-class _DobFeed:
-    """The altitude node's callbacks and ``_step`` (dob_altitude/node.py) on events."""
-
-    def __init__(self, controller: Any, p: dict[str, Any], out: Replay,
-                 references: Sequence[tuple] = (),
-                 observed: dict[float, tuple] | None = None) -> None:
-        self.ctrl, self.out = controller, out
-        # recorded references by stamp, and the recorded e_z per apron t_s (to identify the
-        # reference the node used: e_z = h - z_d of (7), see on_apron)
-        self.refs = sorted((d[0], d) for d in references)
-        self.ref_stamps = [r[0] for r in self.refs]
-        self.observed = observed or {}
-        self.period = 1.0 / p['rate_hz']
-        self.timeout = p['input_timeout_s']
-        self.offset = p['rotor_height_offset_m']
-        self.ff = p['surface_accel_feedforward']
-        self.apron: Any = None
-        self.ref: tuple | None = None        # z_d, ż_d, z̈_d, frame, stamp
-        self.att: tuple | None = None        # roll, pitch, stamp
-        self.enabled = True
-        self.need_reset = True
-        self.last_t = 0.0
-        self.frame_used = ''
-
-    def _ok(self, now: float, stamp: float, last: float | None) -> bool:
-        return (math.isfinite(stamp) and (last is None or stamp >= last)
-                and -self.timeout <= now - stamp <= self.timeout)
-
-    def on_reference(self, now: float, d: tuple) -> None:
-        from dob_altitude.adapter import parse_vertical_frame
-
-        stamp, name, tr, v, a_z, _ = d
-        frame = parse_vertical_frame(name)
-        if frame is not None and self._ok(now, stamp, self.ref[4] if self.ref else None):
-            self.ref = (tr[2], v[2], a_z, frame, stamp)
-
-    def on_imu(self, now: float, d: tuple) -> None:
-        from deckland_common.frames import quaternion_to_euler
-
-        t, q, cov0, _ = d
-        n = math.sqrt(sum(c * c for c in q))
-        if cov0 == -1.0 or abs(n - 1.0) > 0.05:
-            return
-        if self._ok(now, t, self.att[2] if self.att else None):
-            roll, pitch, _ = quaternion_to_euler(*(c / n for c in q))
-            self.att = (roll, pitch, t)
-
-    def on_enabled(self, enabled: bool) -> None:
-        self.enabled = enabled
-        if not enabled:
-            self._reset()
-
-    def _reset(self) -> None:
-        self.ctrl.reset()
-        self.need_reset = True
-
-    def _used_reference(self, st: Any) -> tuple:
-        """The reference the node used for ``st``: the latest it had received.
-
-        The planner steps on the same apron state, so the node usually has the previous
-        state's reference, but which one it had depends on the two nodes' timing. The recorded
-        ``e_z`` (= h − z_d, (7), surface frame) tells exactly: among the references stamped
-        within 50 ms before ``st`` the one with that z_d is taken; if none fits to 1e-9 m
-        (or e_z was not recorded), the latest one by bag order, as the node would.
-        """
-        import bisect
-
-        ref = self.ref
-        obs = self.observed.get(st.t_s)
-        if obs is None or ref is None or ref[3] != 'surface':
-            return ref
-        want = st.vertical.height_m - obs[2]
-        if abs(ref[0] - want) <= 1e-9:
-            return ref
-        lo = bisect.bisect_left(self.ref_stamps, st.t_s - 0.05)
-        hi = bisect.bisect_right(self.ref_stamps, st.t_s)
-        for stamp, d in self.refs[lo:hi]:
-            if abs(d[2][2] - want) <= 1e-9:
-                _count(self.out.notes, 'dob_reference_not_latest_in_bag')
-                return (d[2][2], d[3][2], d[4], ref[3], stamp)
-        _count(self.out.notes, 'dob_reference_unidentified')
-        return ref
-
-    def on_apron(self, now: float, st: Any) -> None:
-        from dob_altitude.adapter import altitude_input
-
-        last = self.apron.t_s if self.apron is not None else None
-        if (last is not None and st.t_s == last) or not self._ok(now, st.t_s, last):
-            return
-        self.apron = st
-        stale = any(s is None or now - s > self.timeout for s in (
-            st.t_s, self.ref[4] if self.ref else None, self.att[2] if self.att else None))
-        if not self.enabled or stale or not st.vertical.valid:
-            _count(self.out.notes, 'dob_withheld')
-            self._reset()
-            return
-        ref, att = self._used_reference(st), self.att
-        dt = st.t_s - self.last_t
-        if ref[3] != self.frame_used and not self.need_reset:
-            self._reset()
-        if self.need_reset or not 0.0 < dt <= self.timeout:
-            self.ctrl.reset()
-            dt = self.period
-        inp = altitude_input(st.vertical, ref[0], ref[1], ref[2], ref[3], att[0], att[1],
-                             self.offset, self.ff)
-        o = self.ctrl.step(inp, dt)
-        self.need_reset = False
-        self.last_t = st.t_s
-        self.frame_used = ref[3]
-        self.out.thrust[st.t_s] = o.thrust_n
-        self.out.observer[st.t_s] = (o.sigma, o.d_hat_mps2, o.e_z_m)
+def _loop_rejections(out: Replay, prefix: str, loop: Any) -> None:
+    for reason, n in loop.rejected.items():
+        _count(out.rejected, f'{prefix}_{reason}', n)
 
 
 _EST_KINDS = ('imu', 'odom', 'velocity', 'range', 'blocks')
@@ -603,16 +343,16 @@ def replay_estimator(golden: Golden, out: Replay | None = None, make: Any = None
 
     out = out if out is not None else Replay()
     est, _, _, _ = (make or make_cores)(golden.meta)
-    feed = _EstimatorFeed(est, node_params(golden.meta, 'apron_estimator'), out.rejected)
+    feed = _estimator_loop(est, golden.meta)
     inputs = [e for e in golden.events if e.kind in _EST_KINDS]
     frame_pos = {e.data[0]: i for i, e in enumerate(inputs) if e.kind == 'blocks'}
     frames = sorted(frame_pos.values())
     arrival = [e.t_ns * 1e-9 for e in inputs]
     pos = 0                     # inputs[:pos] have been fed to ``feed``
 
-    def advance(f: _EstimatorFeed, start: int, stop: int) -> None:
+    def advance(f: Any, start: int, stop: int) -> None:
         for j in range(start, stop):
-            f.feed(arrival[j], inputs[j])
+            _feed_estimator(f, arrival[j], inputs[j])
 
     import bisect
     for e in golden.events:
@@ -634,7 +374,7 @@ def replay_estimator(golden: Golden, out: Replay | None = None, make: Any = None
         cands = cands[:MAX_CANDIDATES]
         advance(feed, pos, lo)
         pos = lo
-        best = feed.est.state(t).to_array()
+        best = feed.estimator.state(t).to_array()
         best_d = _align_distance(best, data)
         best_feed, best_pos = feed, lo
         f, fpos = feed, lo
@@ -644,81 +384,152 @@ def replay_estimator(golden: Golden, out: Replay | None = None, make: Any = None
             f = copy.deepcopy(f) if f is feed else f
             advance(f, fpos, p)
             fpos = p
-            st = f.est.state(t).to_array()
+            st = f.estimator.state(t).to_array()
             d = _align_distance(st, data)
             if d < best_d:
                 best, best_d = st, d
                 best_feed, best_pos = copy.deepcopy(f), p
         if best_feed is not feed:
             _count(out.notes, 'estimator_later_position')
-            best_feed.rejected = out.rejected
             feed, pos = best_feed, best_pos
         out.apron[t] = tuple(best)
+    _loop_rejections(out, 'estimator', feed)
     return out
 
 
+def _used_reference(loop: Any, st: Any, refs: list[tuple[float, tuple]],
+                    ref_stamps: list[float], observed: dict[float, tuple]) -> tuple[Any, str]:
+    """The reference the altitude node used for ``st``, and a note ('' = the latest one).
+
+    The planner steps on the same apron state, so the node usually has the previous state's
+    reference, but which one it had depends on the two nodes' timing. The recorded ``e_z``
+    (= h − z_d, (7), relative frame) tells exactly: among the references stamped within 50 ms
+    before ``st`` the one with that z_d is taken; if none fits to 1e-9 m (or e_z was not
+    recorded), the latest one received, as the node would.
+    """
+    import bisect
+
+    from deckland_common.contract import VERTICAL_RELATIVE, VerticalReference
+
+    ref = loop.reference
+    obs = observed.get(st.t_s)
+    if obs is None or ref is None or ref.frame != VERTICAL_RELATIVE:
+        return None, ''
+    want = st.vertical.height_m - obs[2]
+    if abs(ref.z_d_m - want) <= 1e-9:
+        return None, ''
+    lo = bisect.bisect_left(ref_stamps, st.t_s - 0.05)
+    hi = bisect.bisect_right(ref_stamps, st.t_s)
+    for stamp, d in refs[lo:hi]:
+        if abs(d[2][2] - want) <= 1e-9:
+            return (VerticalReference(d[2][2], d[3][2], d[4], ref.frame, stamp),
+                    'dob_reference_not_latest_in_bag')
+    return None, 'dob_reference_unidentified'
+
+
 def replay_cores(golden: Golden, make: Any = None) -> Replay:
-    """Replay the golden inputs through the pure cores, as the three nodes run them.
+    """Replay the golden inputs through the nodes' loop cores, as the three nodes ran them.
 
     Events are taken in bag (receive) order; the bag time of an event stands for the node
     clock's ``now`` when it was handled. Each stage is fed what its node received:
 
     * the estimator gets the sensor topics (:func:`replay_estimator`);
-    * the planner and the altitude controller step on each *recorded* ``apron/state`` (so a
-      difference in one stage does not hide or smear one in the next), the planner with
-      ``now`` = the bag time of that message; the altitude controller with the latest IMU
-      attitude and the recorded ``planner/reference`` it used (:class:`_DobFeed`);
+    * the planner and the altitude loops step on each *recorded* ``apron/state`` (so a
+      difference in one stage does not hide or smear one in the next); the altitude loop
+      with the recorded ``planner/reference`` it used (:func:`_used_reference`);
     * ``start_landing`` is called at the bag time of the first ``planner/mode`` leaving IDLE,
-      and the planner's watchdog steps (apron state stale: a recorded reference whose stamp is
+      and the planner's watchdog ticks (apron state stale: a recorded reference whose stamp is
       no apron ``t_s``) are stepped on ``ApronState.untracked(stamp)`` at that stamp.
 
     ``make(meta)`` replaces :func:`make_cores` (tests build deliberately changed cores).
     """
-    from apron_estimator.types import ApronState
+    from deckland_common.contract import ApronState
+    from deckland_common.frames import euler_to_quaternion, quaternion_to_euler
+    from dob_altitude.loop import AltitudeLoop
+    from landing_planner.loop import PlannerLoop
 
     out = Replay()
     replay_estimator(golden, out, make)
     _, planner, horizontal, ctrl = (make or make_cores)(golden.meta)
-    pfeed = _PlannerFeed(planner, horizontal, node_params(golden.meta, 'landing_planner'), out)
-    dfeed = _DobFeed(ctrl, node_params(golden.meta, 'dob_altitude'), out,
-                     [e.data for e in golden.events if e.kind == 'reference'],
-                     {e.data[0]: e.data[1] for e in golden.events if e.kind == 'observer'})
+    pp = node_params(golden.meta, 'landing_planner')
+    dp = node_params(golden.meta, 'dob_altitude')
+    ploop = PlannerLoop(planner, horizontal, period_s=1.0 / pp['rate_hz'],
+                        input_timeout_s=pp['input_timeout_s'], map_frame=pp['map_frame'])
+    aloop = AltitudeLoop(ctrl, period_s=1.0 / dp['rate_hz'],
+                         input_timeout_s=dp['input_timeout_s'],
+                         rotor_height_offset_m=dp['rotor_height_offset_m'],
+                         surface_accel_ff=dp['surface_accel_feedforward'])
+    refs = sorted((e.data[0], e.data) for e in golden.events if e.kind == 'reference')
+    ref_stamps = [r[0] for r in refs]
+    observed = {e.data[0]: e.data[1] for e in golden.events if e.kind == 'observer'}
     apron_stamps = {e.data[0][0] for e in golden.events if e.kind == 'apron'}
+    mode = planner.mode
+
+    def track_mode(now: float) -> None:
+        nonlocal mode
+        if planner.mode is not mode:
+            mode = planner.mode
+            out.modes.append((now, mode.name))
+
+    def record(tick: Any) -> None:
+        if tick is None or not tick.publish_reference:
+            return
+        o, s = tick.output, tick.stamp_s
+        q = euler_to_quaternion(0.0, 0.0, o.yaw_rad)   # the yaw as the message carries it
+        out.reference[s] = (o.vertical_mode, (o.setpoint_m[0], o.setpoint_m[1], o.z_d_m),
+                            (o.velocity_ff_mps[0], o.velocity_ff_mps[1], o.z_d_dot_mps),
+                            o.z_d_ddot_mps2, quaternion_to_euler(*q)[2])
+        if tick.publish_attitude and tick.command is not None:
+            out.attitude[s] = (tick.command[0], tick.command[1], o.yaw_rad)
+
     started = False
     for e in golden.events:
         now = e.t_ns * 1e-9
-        k = e.kind
-        if k in ('odom', 'velocity', 'landed'):
-            pfeed.feed(now, e)
+        k, d = e.kind, e.data
+        if k == 'odom':
+            ploop.on_odom(now, d[0], d[1], d[2], d[3])
+        elif k == 'velocity':
+            ploop.on_velocity(now, d[0], d[2], d[1])
+        elif k == 'landed':
+            ploop.on_landed(d[0])
         elif k == 'imu':
-            dfeed.on_imu(now, e.data)
+            aloop.on_imu(now, d[0], d[1], has_orientation=d[2] != -1.0)
         elif k == 'mode':
-            if not started and e.data[0] not in ('IDLE', 'LANDED'):
+            if not started and d[0] not in ('IDLE', 'LANDED'):
                 started = True
-                pfeed.start_landing(now)
+                ok, _ = ploop.start_landing(now)
+                _count(out.notes, 'start_landing_ok' if ok else 'start_landing_refused')
+                track_mode(now)
         elif k == 'enabled':
-            dfeed.on_enabled(e.data[0])
+            aloop.on_enabled(d[0])
         elif k == 'reference':
-            stamp = e.data[0]
+            stamp = d[0]
             if stamp not in apron_stamps and stamp not in out.reference:
-                pfeed.step(stamp, ApronState.untracked(stamp))   # the node's watchdog
+                record(ploop.step(stamp, ApronState.untracked(stamp)))   # the node's watchdog
+                track_mode(stamp)
                 _count(out.notes, 'planner_watchdog_steps')
-            dfeed.on_reference(now, e.data)
+            aloop.on_reference(now, stamp, d[1], d[2][2], d[3][2], d[4])
         elif k == 'apron':
-            st = ApronState.from_array(e.data[0])
-            pfeed.on_apron(now, st)
-            dfeed.on_apron(now, st)
+            st = ApronState.from_array(d[0])
+            record(ploop.on_apron(now, st))
+            track_mode(now)
+            used, note = _used_reference(aloop, st, refs, ref_stamps, observed)
+            steps = aloop.counts['steps']
+            o = aloop.on_apron(now, st, reference=used)
+            if note and aloop.counts['steps'] > steps:
+                _count(out.notes, note)
+            if o is not None:
+                out.thrust[st.t_s] = o.thrust_n
+                out.observer[st.t_s] = (o.sigma, o.d_hat_mps2, o.e_z_m)
+    _loop_rejections(out, 'planner', ploop)
+    _count(out.notes, 'planner_clock_not_advancing', ploop.withheld['clock_not_advancing'])
+    _count(out.notes, 'planner_vehicle_stale', ploop.withheld['vehicle_stale'])
+    _count(out.notes, 'dob_withheld', sum(aloop.withheld[r] for r in
+                                          ('disabled', 'stale', 'invalid_vertical')))
     return out
 
 
 # ========================================================================== comparison
-
-
-def _percentile(values: list[float], q: float) -> float:
-    if not values:
-        return 0.0
-    s = sorted(values)
-    return s[min(len(s) - 1, math.ceil(q * len(s)) - 1)]
 
 
 @dataclass
@@ -812,8 +623,8 @@ def _check(name: str, pairs: Iterable[tuple[float, float, float]],
         errs.append(err)
         if err > worst:
             worst, worst_t = err, t
-    return Check(name, len(errs), _percentile(errs, q), max(errs, default=0.0), tol,
-                 worst_t)
+    return Check(name, len(errs), percentile(errs, 100.0 * q) if errs else 0.0,
+                 max(errs, default=0.0), tol, worst_t)
 
 
 def recorded_outputs(golden: Golden) -> Replay:
@@ -1033,9 +844,8 @@ def trim(raw_dir: Path, out_dir: Path) -> tuple[int, int]:
     touchdown). Latched topics keep their messages from before the window (stamped at its
     start). Offered QoS profiles are copied explicitly. Returns the window (ns).
     """
-    from rosbags.highlevel import AnyReader
-
     from deckland.bag import BagWriter
+    from rosbags.highlevel import AnyReader
 
     keep = set(INPUT_TOPICS) | set(OUTPUT_TOPICS)
     latched = {'/vehicle/landed', '/planner/mode', '/control/enabled'}
@@ -1079,9 +889,8 @@ def shifted_copy(bag_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str
     ``std_msgs/Bool`` on :data:`GATE_TOPIC` at the first message's time: a player started with
     ``--wait-subscribers`` then starts the moment something subscribes to it.
     """
-    from rosbags.highlevel import AnyReader
-
     from deckland.bag import BagWriter
+    from rosbags.highlevel import AnyReader
 
     wanted = set(topics)
     n = 0
@@ -1288,8 +1097,8 @@ def _replay_into(golden: Golden, bag_dir: Any, context: Any, executor: Any, orch
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m deckland.golden record DIR`` | ``check DIR`` (pure replay report)."""
-    parser = argparse.ArgumentParser(prog='python -m deckland.golden',
+    """``python test/golden.py record DIR`` | ``check DIR`` (pure replay report)."""
+    parser = argparse.ArgumentParser(prog='python test/golden.py',
                                      description='golden-bag regression (make golden)')
     sub = parser.add_subparsers(dest='verb', required=True)
     rec = sub.add_parser('record', help='fly the reference landing and (re)write DIR')

@@ -1,0 +1,284 @@
+"""The simulator's hardware emulation stepped in sim time, and its wall-clock schedule (pure).
+
+:class:`SimulationLoop` is everything the simulator node does between its timer and its
+publishers: the world, the emulated PX4 on the MAVLink wire (with the scenario's link faults),
+the Pixy datagrams, the autopilot the world flies, truth samples and the outcome record.
+:class:`TickSchedule` gives the node's thread absolute fixed-rate deadlines. No rclpy: the
+node (``deck_simulator.node``) only adds the thread, the sockets, parameters and topics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+import math
+import threading
+
+from deckland_common.frames import mat_t_vec, rot_body_to_world
+from pixy_driver.protocol import block_in_range, encode_frame
+
+from deck_simulator.autopilot import EmulatedAutopilot, with_link_fault
+from deck_simulator.link import ImpairedLink
+from deck_simulator.outcome import landing_outcome, outcome_dict
+from deck_simulator.px4_emulator import Px4Emulator
+from deck_simulator.scenario import Scenario
+from deck_simulator.world import Truth, World
+
+#: planner modes that do not count as "landing triggered" (time_to_land_s starts at the first
+#: mode outside this set; TAKEOFF is a take-off, not a landing trigger)
+NOT_LANDING_MODES = frozenset({'IDLE', 'HOLD', 'TAKEOFF'})
+AUTOPILOT_INPUT_HZ = 100.0     # the emulator reads the wire at PX4's control rate
+
+
+def body_rates(roll: float, pitch: float, droll: float, dpitch: float,
+               dyaw: float) -> tuple[float, float, float]:
+    """Z-Y-X Euler rates → body rates (p, q, r) FLU: ω = W(φ, θ) (φ̇, θ̇, ψ̇)."""
+    sr, cr = math.sin(roll), math.cos(roll)
+    sp, cp = math.sin(pitch), math.cos(pitch)
+    return (droll - sp * dyaw, cr * dpitch + sr * cp * dyaw, -sr * dpitch + cr * cp * dyaw)
+
+
+def body_twist(tr: Truth) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The true twist in ``base_link`` (REP-105): (Rᵀ v, body rates)."""
+    r = rot_body_to_world(tr.roll_rad, tr.pitch_rad, tr.yaw_rad)
+    return (mat_t_vec(r, tr.velocity_mps),
+            body_rates(tr.roll_rad, tr.pitch_rad, *tr.euler_rates_radps))
+
+
+class SimulationLoop:
+    """World + emulated PX4 + Pixy wire + outcome, stepped in sim time.
+
+    The world flies one :class:`~deck_simulator.autopilot.EmulatedAutopilot` (the emulator
+    is its MAVLink face; a scenario link fault's settings configure it, with no hold before
+    the failsafe action and no automatic re-engagement: the bridge asks for OFFBOARD itself).
+    The vehicle starts armed, in the air, in POSCTL. ``advance(dt_s)`` runs as many
+    ``1 / physics_rate_hz`` sub-steps as fit (the remainder is carried over) and returns
+    ``(truth_samples, outcome_or_None)``; per sub-step, at the scenario's sensor rates:
+    telemetry into the emulator (``imu.rate_hz``; lidar at ``lidar.rate_hz``), a Pixy datagram
+    (``camera.rate_hz``), the emulator's input (``AUTOPILOT_INPUT_HZ``), truth samples
+    (``truth_rate_hz``). ``on_planner_mode`` may be called from another thread.
+    """
+
+    def __init__(self, scenario: Scenario, seed: int, emulator: Px4Emulator,
+                 pixy_send: Callable[[bytes], None], physics_rate_hz: float = 400.0,
+                 truth_rate_hz: float = 50.0, link_downlink: str = 'cut') -> None:
+        self.scenario = scenario
+        self.seed = seed
+        self.world = world = World(scenario, seed, physics_dt_s=1.0 / physics_rate_hz)
+        self.emulator = emulator
+        fs = world.faults
+        params = emulator.params.autopilot_params()
+        if fs is not None and fs.has_link:   # COM_OF_LOSS_T, MPC_LAND_SPEED, RTL, ...
+            params = with_link_fault(params, fs.link_spec)
+        self.autopilot = EmulatedAutopilot(params, world)
+        world.attach_autopilot(self.autopilot)
+        emulator.use_autopilot(self.autopilot)
+        # the scenario's MAVLink faults act on the wire; a node_kill is a real kill
+        self.link: ImpairedLink | None = None
+        if ImpairedLink.wire_faults(fs):
+            self.link = ImpairedLink(emulator.transport, world, seed, link_downlink)
+            emulator.set_transport(self.link)
+        self.pixy_send = pixy_send
+        self.h_s = 1.0 / physics_rate_hz
+        sp = scenario.sensors
+        self._periods = {'telemetry': 1.0 / sp.imu.rate_hz, 'lidar': 1.0 / sp.lidar.rate_hz,
+                         'camera': 1.0 / sp.camera.rate_hz,
+                         'control': 1.0 / AUTOPILOT_INPUT_HZ, 'truth': 1.0 / truth_rate_hz}
+        self._due = dict.fromkeys(self._periods, 0.0)
+        self._pending_s = 0.0
+        self._range_m: float | None = None
+        self._g = scenario.vehicle.gravity_mps2
+        self._lock = threading.Lock()
+        self.mode = ''
+        self.trigger_t_s: float | None = None
+        self.searches = 0
+        self.outcome: dict | None = None
+        self.counters = {'substeps': 0, 'pixy_frames': 0, 'pixy_blocks_dropped': 0,
+                         'pixy_send_errors': 0, 'offboard_steps': 0, 'autopilot_steps': 0}
+        self.rejected: dict[str, int] = {'bad_dt': 0, 'bad_mode': 0}
+        # the vehicle hovers armed in POSCTL at the start (PX4 after a manual take-off)
+        self._take('lidar', 0.0)
+        self._range_m = world.read_lidar()
+        self._take('telemetry', 0.0)
+        self._telemetry(0.0)
+        self.autopilot.start_in_air(0.0)
+        self.last_kind = self.autopilot.kind
+
+    # --- inputs from other threads -------------------------------------------------------
+
+    def on_planner_mode(self, name: str) -> None:
+        """``planner/mode``: the landing trigger (first mode outside IDLE/HOLD/TAKEOFF) and
+        the number of entries into SEARCH, both at the current sim time."""
+        if not isinstance(name, str) or not name.strip():
+            self.rejected['bad_mode'] += 1
+            return
+        name = name.strip().upper()
+        with self._lock:
+            if name == 'SEARCH' and self.mode != 'SEARCH':
+                self.searches += 1
+            if self.trigger_t_s is None and name not in NOT_LANDING_MODES:
+                self.trigger_t_s = self.world.t_s
+            self.mode = name
+
+    def rejection_counts(self) -> dict[str, int]:
+        """What was rejected (the wire, the world, this loop, the autopilot) or dropped (Pixy
+        blocks out of range, send errors, datagrams the scenario's MAVLink faults took)."""
+        counts = {f'mavlink.{k}': v for k, v in self.emulator.rejected.items()}
+        counts.update({f'world.{k}': v for k, v in self.world.rejected.items()})
+        counts.update({f'sim.{k}': v for k, v in self.rejected.items()})
+        counts.update({f'autopilot.{k}': v for k, v in self.autopilot.rejected.items()})
+        counts['pixy.blocks_dropped'] = self.counters['pixy_blocks_dropped']
+        counts['pixy.send_errors'] = self.counters['pixy_send_errors']
+        if self.link is not None:
+            counts.update({f'link.{k}': v for k, v in self.link.counters.items()
+                           if k.endswith(('_cut', '_lost', '_delayed'))})
+        return counts
+
+    # --- stepping ------------------------------------------------------------------------
+
+    def advance(self, dt_s: float) -> tuple[list[Truth], dict | None]:
+        if not (isinstance(dt_s, int | float) and math.isfinite(dt_s) and dt_s >= 0.0):
+            self.rejected['bad_dt'] += 1
+            return [], None
+        self._pending_s += dt_s
+        n = int(self._pending_s / self.h_s + 1e-9)
+        self._pending_s = max(0.0, self._pending_s - n * self.h_s)
+        samples: list[Truth] = []
+        new_outcome = None
+        for _ in range(n):
+            out = self._substep(samples)
+            if out is not None:
+                new_outcome = out
+        return samples, new_outcome
+
+    def _take(self, name: str, t: float) -> bool:
+        if t + 1e-9 < self._due[name]:
+            return False
+        nxt = self._due[name] + self._periods[name]
+        self._due[name] = nxt if nxt > t + 1e-9 else t + self._periods[name]
+        return True
+
+    def _substep(self, samples: list[Truth]) -> dict | None:
+        world = self.world
+        t = world.t_s
+        if self._take('lidar', t):
+            self._range_m = world.read_lidar()
+        if self._take('telemetry', t):
+            self._telemetry(t)
+        if self._take('camera', t):
+            self._camera()
+        if self._take('control', t):
+            self._control(t)
+        world.step(self.h_s)      # the autopilot flies the non-offboard modes in here
+        self.counters['substeps'] += 1
+        t = world.t_s
+        if self._take('truth', t):
+            samples.append(world.truth())
+        if self.outcome is None:
+            return self._check_outcome(t)
+        return None
+
+    def _telemetry(self, t: float) -> None:
+        world = self.world
+        pos, vel = world.read_local_position()
+        roll, pitch, yaw = world.read_attitude()
+        ax, ay, az = world.read_accel_world()
+        tr = world.truth()
+        rates = body_rates(tr.roll_rad, tr.pitch_rad, *tr.euler_rates_radps)
+        # specific force in body FLU (REP-145): Rᵀ (a + g e3)
+        accel_body = mat_t_vec(rot_body_to_world(tr.roll_rad, tr.pitch_rad, tr.yaw_rad),
+                               (ax, ay, az + self._g))
+        self.emulator.publish_state(t, pos, vel, roll, pitch, yaw, rates, accel_body,
+                                    self._range_m, world.resting_on is not None)
+
+    def _camera(self) -> None:
+        _stamp, blocks = self.world.read_camera()
+        keep = [b for b in blocks if block_in_range(*b)]
+        self.counters['pixy_blocks_dropped'] += len(blocks) - len(keep)
+        try:
+            self.pixy_send(encode_frame(keep))
+            self.counters['pixy_frames'] += 1
+        except (OSError, ValueError):
+            self.counters['pixy_send_errors'] += 1
+
+    def _control(self, t: float) -> None:
+        self.emulator.update(t)   # bytes from the wire: setpoints, commands (bad ones counted)
+        self.last_kind = kind = self.autopilot.kind
+        self.counters['offboard_steps' if kind == 'offboard' else 'autopilot_steps'] += 1
+
+    def _check_outcome(self, t: float) -> dict | None:
+        world = self.world
+        with self._lock:
+            trigger, searches, mode = self.trigger_t_s, self.searches, self.mode
+        if world.contact is not None:
+            out = outcome_dict(landing_outcome(world, self.seed, trigger, searches, mode, ''))
+        else:
+            deadline = (trigger if trigger is not None else 0.0) + self.scenario.timeout_s
+            if t < deadline:
+                return None
+            since = 'the landing trigger' if trigger is not None else 'the start (no trigger)'
+            out = outcome_dict(
+                landing_outcome(world, self.seed, trigger, searches, mode, 'timeout'),
+                detail=f'no touchdown within {self.scenario.timeout_s:g} s of {since}')
+        self.outcome = out
+        return out
+
+
+class TickSchedule:
+    """Absolute fixed-rate deadlines on a monotonic clock (pure: the caller passes ``now_s``).
+
+    Tick k is due at ``anchor + k · period_s``. :meth:`wait_s` says how long to sleep until the
+    next deadline (≤ 0: due now); :meth:`tick` accounts one tick run at ``now_s`` and returns
+    its deadline. Deadlines advance by ``period_s`` whatever the work took, so there is no
+    drift and a late tick is followed by catch-up ticks with no sleep in between. If a tick is
+    run more than ``max_lag_s`` after its deadline (a stall), the backlog is dropped, the
+    schedule is re-anchored at ``now_s`` and the stall is counted in ``overruns`` with the
+    dropped ticks in ``ticks_dropped``; ``late`` counts ticks run more than ``late_s`` after
+    their deadline (jitter diagnostics).
+    """
+
+    __slots__ = ('_next_s', 'late', 'late_s', 'max_lag_s', 'overruns', 'period_s', 'ticks',
+                 'ticks_dropped')
+
+    def __init__(self, period_s: float, max_lag_s: float, now_s: float,
+                 late_s: float = 0.002) -> None:
+        if not (math.isfinite(period_s) and period_s > 0.0):
+            raise ValueError(f'TickSchedule.period_s must be finite and > 0, got {period_s!r}')
+        if not (math.isfinite(max_lag_s) and max_lag_s >= period_s):
+            raise ValueError(f'TickSchedule.max_lag_s must be finite and >= period_s, '
+                             f'got {max_lag_s!r}')
+        self.period_s = period_s
+        self.max_lag_s = max_lag_s
+        self.late_s = late_s
+        self._next_s = now_s
+        self.ticks = 0
+        self.late = 0
+        self.overruns = 0
+        self.ticks_dropped = 0
+
+    @property
+    def next_s(self) -> float:
+        """Deadline of the next tick."""
+        return self._next_s
+
+    def wait_s(self, now_s: float) -> float:
+        """Seconds until the next deadline (≤ 0 when it is due)."""
+        return self._next_s - now_s
+
+    def tick(self, now_s: float) -> float:
+        """Account the tick run at ``now_s`` (call it when :meth:`wait_s` ≤ 0); returns the
+        deadline the tick stands for (``now_s`` itself after a stall)."""
+        lag = now_s - self._next_s
+        if lag > self.max_lag_s:
+            self.overruns += 1
+            self.ticks_dropped += int(lag / self.period_s + 1e-9)  # due, not run
+            self._next_s = now_s
+        elif lag > self.late_s:
+            self.late += 1
+        deadline = self._next_s
+        self._next_s = deadline + self.period_s
+        self.ticks += 1
+        return deadline
+
+
+__all__ = ['AUTOPILOT_INPUT_HZ', 'NOT_LANDING_MODES', 'SimulationLoop', 'TickSchedule',
+           'body_rates', 'body_twist']
