@@ -79,6 +79,18 @@ def backend(**kw):
         fake
 
 
+def wait_sim(world, cond, sim_s, wall_s=120.0):
+    """``cond()`` within ``sim_s`` of the world's (ArduCopter's) clock: the lockstep runs
+    slower than the wall clock on a loaded machine (0.3x seen), and ArduCopter's own delays
+    (MOT_SAFE_TIME 1 s, spool-up 0.5 s, its land detector) are in its simulated time."""
+    t0, w0 = world.t_s, time.monotonic()
+    while world.t_s - t0 < sim_s and time.monotonic() - w0 < wall_s:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return cond()
+
+
 def arducopter_pwm(thrust_norm, p=None):
     """ArduCopter's output for a normalised thrust (AP_MotorsMulticopter thrust_to_actuator,
     battery and air-density compensation 1): the inverse of its thrust curve, then spin
@@ -283,10 +295,10 @@ def test_arducopter_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_co
                 assert wait_for(lambda: core.mode == 'GUIDED_NOGPS', 5.0), core.last_result
                 assert call(helper, SetBool, 'bridge/arm', SetBool.Request(data=True)).success
                 assert wait_for(core.in_offboard, 5.0), core.last_result
-                assert wait_for(lambda: phys.armed, 3.0)
+                assert wait_sim(world, lambda: phys.armed, 3.0), (phys.pwm[:4], world.t_s)
                 # take off to 1.5 m (a PD loop on the truth), then the hover on open-loop m g
                 stream['pd'] = True
-                assert wait_for(lambda: v.z > 1.3 and abs(v.vz) < 0.1, 15.0), (v.z, v.vz)
+                assert wait_sim(world, lambda: v.z > 1.3 and abs(v.vz) < 0.1, 15.0), (v.z, v.vz)
                 time.sleep(1.0)
                 stream['pd'] = False
                 stream['thrust'] = weight
@@ -304,8 +316,8 @@ def test_arducopter_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_co
                 # the thrust stops: the bridge commands LAND after stop_after_s, ArduCopter
                 # lands on deckland's ground and disarms by itself
                 stream['on'] = False
-                assert wait_for(lambda: core.mode == 'LAND', 3.0), core.last_result
-                assert wait_for(lambda: not phys.armed and not core.armed, 20.0)
+                assert wait_sim(world, lambda: core.mode == 'LAND', 3.0), core.last_result
+                assert wait_sim(world, lambda: not phys.armed and not core.armed, 20.0)
                 assert world.contact is not None and world.contact.kind == 'ground'
                 assert world.contact.touchdown_speed_mps < 0.8
             finally:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import math
+from typing import NamedTuple
 
 from mavlink_bridge.conversions import (
     ARDUCOPTER_MODES,
@@ -24,7 +25,7 @@ from mavlink_bridge.conversions import (
 )
 from pymavlink.dialects.v20 import common as mavlink
 
-from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator, VehicleCommand
+from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
 
 STABILIZE, ALT_HOLD, GUIDED, LOITER, RTL, LAND = 0, 2, 4, 5, 6, 9
 POSHOLD, BRAKE, GUIDED_NOGPS = 16, 17, 20
@@ -43,6 +44,17 @@ _STREAMS = (mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITI
             mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET)
 MAV_PARAM_TYPE_INT8, MAV_PARAM_TYPE_INT16 = 2, 4
 MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32 = 6, 9
+
+
+class VehicleCommand(NamedTuple):
+    """What ArduCopter flies now: ``kind`` ('idle', 'offboard', 'hold', 'land',
+    'failsafe_land', 'failsafe_return'), attitude (FLU in ENU) and collective thrust (N)."""
+
+    kind: str
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    thrust_n: float
 
 
 def _sitl_vehicle() -> ThrustCalibration:
@@ -142,8 +154,15 @@ class ArduPilotEmulator(Px4Emulator):
             bind_host=base.bind_host, bind_port=base.bind_port, remote_host=base.remote_host,
             remote_port=base.remote_port, range_min_cm=ap.range_min_cm,
             range_max_cm=ap.range_max_cm, land_speed_mps=ap.land_speed_mps,
-            vz_gain_per_s=ap.vz_gain_per_s, thrust=ap.thrust), transport)
+            thrust=ap.thrust), transport)
+        # ArduCopter's own mode logic (below), not the PX4-like EmulatedAutopilot's: the base
+        # class is the wire (transport, parser, signing, telemetry encoding, TIMESYNC)
+        self._drives_autopilot = False
         self.ardupilot = ap
+        self._armed = False
+        self._failsafe = False
+        self._setpoint: VehicleCommand | None = None
+        self._last_setpoint_s = -math.inf
         self.intervals_s = dict.fromkeys((mavlink.MAVLINK_MSG_ID_HEARTBEAT, *_STREAMS), 0.0)
         self.intervals_s[mavlink.MAVLINK_MSG_ID_HEARTBEAT] = 1.0
         self._next_due = dict.fromkeys(self.intervals_s, -math.inf)
@@ -161,6 +180,51 @@ class ArduPilotEmulator(Px4Emulator):
         self._hovered = False
 
     # --- the firmware's state ---------------------------------------------------------------
+
+    @property
+    def armed(self) -> bool:
+        return self._armed
+
+    @armed.setter
+    def armed(self, value: bool) -> None:
+        self._armed = value
+
+    @property
+    def failsafe_active(self) -> bool:
+        """The GCS failsafe's LAND / RTL flies (until a mode is set or the vehicle disarms)."""
+        return self._failsafe
+
+    @failsafe_active.setter
+    def failsafe_active(self, value: bool) -> None:
+        self._failsafe = value
+
+    @property
+    def setpoint(self) -> VehicleCommand | None:
+        """The last decoded SET_ATTITUDE_TARGET (ENU/FLU, newtons)."""
+        return self._setpoint
+
+    @setpoint.setter
+    def setpoint(self, value: VehicleCommand | None) -> None:
+        self._setpoint = value
+
+    @property
+    def last_setpoint_s(self) -> float:
+        return self._last_setpoint_s
+
+    @last_setpoint_s.setter
+    def last_setpoint_s(self, value: float) -> None:
+        self._last_setpoint_s = value
+
+    @property
+    def kind(self) -> str:
+        """What flies the vehicle (:meth:`command`'s kind)."""
+        return self.command().kind
+
+    def update(self, t_s: float) -> None:
+        """Read and handle every pending packet, then run ArduCopter's mode logic."""
+        super().update(t_s)
+        if math.isfinite(t_s) and t_s >= self._t_s:
+            self._run_logic(t_s)
 
     @property
     def mode(self) -> str:
