@@ -198,6 +198,34 @@ def test_lockstep_repeats_resets_and_silence():
     assert ap.rejected['bad_data'] == 1
 
 
+def test_tick_mode_answers_each_frame_with_the_state_the_world_reached():
+    """As the simulator loop drives it (the world steps, the backend ticks every sub-step):
+    one frame per period, the answer to frame n carries the world's time after the sub-step
+    frame n's PWM flew, PWM drives the motors; silence ends in ConnectionError."""
+    sc = load_scenario('paper')
+    world = World(sc, 1, physics_dt_s=1.0 / 400.0)
+    fake = FakeSitl(rate=400)
+    ap = ArduPilotJson(world, JsonParams(lockstep_timeout_s=0.02, max_silent_frames=3),
+                       link=fake)
+    world.attach_autopilot(ap)
+    hover = arducopter_pwm(1.0 / sc.vehicle.thrust_to_weight)
+    fake.pwm = [hover] * 4 + [1000] * 12
+    assert ap.accept(1.0) and fake.answers == []
+    for _ in range(400):                     # 1 s: the motors' lag settles
+        world.step(1.0 / 400.0)
+    stamps = [json.loads(a)['timestamp'] for a in fake.answers]
+    assert len(stamps) == 400 and ap.counters['frames'] == 400
+    assert stamps == pytest.approx([k / 400.0 for k in range(400)], abs=1e-9)
+    v = world.vehicle
+    assert v.f1 + v.f2 + v.f3 + v.f4 == pytest.approx(
+        sc.vehicle.mass_kg * sc.vehicle.gravity_mps2, rel=0.02)
+    fake.auto = False
+    with pytest.raises(ConnectionError):
+        for _ in range(3):
+            world.step(1.0 / 400.0)
+    assert ap.counters['lockstep_timeouts'] == 3
+
+
 class Lockstep:
     """The world thread: answers ArduCopter's frames as they come (ArduCopter paces them to
     the wall clock at --speedup 1)."""

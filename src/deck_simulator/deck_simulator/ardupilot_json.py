@@ -65,6 +65,7 @@ class JsonParams:
     imu: ImuModelParams = field(default_factory=ImuModelParams)
     lockstep_timeout_s: float = 1.0           # wall time to wait for ArduCopter's next frame
     max_frame_gap: int = 100                  # frames skipped that are still integrated
+    max_silent_frames: int = 5                # tick mode: timeouts in a row = ArduCopter gone
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -87,6 +88,10 @@ class JsonParams:
                 or self.max_frame_gap < 1:
             raise ValueError(f'JsonParams.max_frame_gap = {self.max_frame_gap!r}: must be an '
                              'integer >= 1')
+        if isinstance(self.max_silent_frames, bool) or \
+                not isinstance(self.max_silent_frames, int) or self.max_silent_frames < 1:
+            raise ValueError(f'JsonParams.max_silent_frames = {self.max_silent_frames!r}: '
+                             'must be an integer >= 1')
         if not isinstance(self.imu, ImuModelParams):
             raise ValueError('JsonParams.imu must be an ImuModelParams')
 
@@ -201,6 +206,12 @@ class ArduPilotJson:
         self._range_m = -1.0
         self._range_period = 1.0 / world.scenario.sensors.lidar.rate_hz
         self._fmax = world.params.motor_max_n
+        # the world's Autopilot protocol (tick mode: the simulator loop steps the world)
+        self.active = True
+        self.failsafes = 0
+        self._next_s = 0.0
+        self._answer_due = False
+        self._silent = 0
         if start_on_ground:
             place_on_ground(world)
         world.vehicle.set_motor_thrusts(0.0, 0.0, 0.0, 0.0)
@@ -216,7 +227,8 @@ class ArduPilotJson:
             left = end - time.monotonic()
             if left <= 0.0:
                 return False
-            self._frame(left)
+            if self._receive(left):
+                self._answer_due = True      # answered by the first step / tick
         return True
 
     def step(self, dt_s: float) -> int:
@@ -228,6 +240,13 @@ class ArduPilotJson:
         self._pending_s += dt_s
         n = 0
         t0 = time.monotonic()
+        if self._answer_due and self._pending_s > 1e-9:     # the frame accept() took
+            dt = 1.0 / self.frame_rate_hz
+            self.world.step(dt)
+            self.counters['frames'] += 1
+            self._send_answer()
+            self._pending_s -= dt
+            n += 1
         while self._pending_s > 1e-9:
             advanced = self._frame(self.params.lockstep_timeout_s)
             if advanced is None:
@@ -246,20 +265,40 @@ class ArduPilotJson:
     # --- one frame -----------------------------------------------------------------------
 
     def _frame(self, timeout_s: float) -> float | None:
-        """Handle one servo packet; the physics time it advanced (0 for a repeat or a bad
-        packet), None when none came within ``timeout_s``."""
+        """Handle one servo packet and step the world (:meth:`step`'s mode); the physics
+        time it advanced (0 for a repeat or a bad packet), None when none came within
+        ``timeout_s``."""
+        frames = self._receive(timeout_s)
+        if not frames:
+            return frames
+        dt = frames / self.frame_rate_hz
+        self.world.step(dt)
+        self.counters['frames'] += 1
+        self._send_answer()
+        return dt
+
+    def _send_answer(self) -> None:
+        self._answer = self._state()
+        self.link.send(self._answer)
+        self.counters['answers'] += 1
+        self._answer_due = False
+
+    def _receive(self, timeout_s: float) -> int | None:
+        """One servo packet: its PWM applied to the motors; the frames it advances (0 for a
+        repeat, answered again, or a bad packet), None when none came within ``timeout_s``."""
         data = self.link.receive(timeout_s)
         if data is None:
             return None
         parsed = self._parse(data)
         if parsed is None:
             self.rejected['bad_data'] += 1
-            return 0.0
+            return 0
         rate, count, pwm = parsed
         if count == self.frame_count:
             self.counters['repeats'] += 1            # our answer was lost: the same again
-            self.link.send(self._answer)
-            return 0.0
+            if self._answer:
+                self.link.send(self._answer)
+            return 0
         if count < self.frame_count or self.frame_count < 0 or rate != self.frame_rate_hz:
             if 0 <= count < self.frame_count:
                 self.counters['resets'] += 1         # ArduCopter restarted
@@ -277,13 +316,47 @@ class ArduPilotJson:
         self.frame_count = count
         self.pwm = pwm
         self._apply(pwm)
-        dt = frames / self.frame_rate_hz
-        self.world.step(dt)
+        return frames
+
+    # --- the world's Autopilot protocol (the simulator loop) ------------------------------
+
+    @property
+    def failsafe(self) -> str | None:
+        """ArduCopter's failsafes are its own (reported on MAVLink), not the world's."""
+        return None
+
+    def tick(self, t_s: float, world: World) -> None:
+        """Every physics sub-step (the world steps, :meth:`step` is not used): once a frame
+        period is due, the answer to the last servo frame (the state the sub-steps since
+        reached) goes back and the next frame's PWM drives the motors. Frames are 1:1 with
+        the periods: run the world at ArduCopter's ``SIM_RATE_HZ``. ``max_silent_frames``
+        lockstep timeouts in a row raise ConnectionError (ArduCopter is gone)."""
+        if self.frame_count >= 0 and t_s + 1e-9 < self._next_s:
+            return
+        period = 1.0 / self.frame_rate_hz if self.frame_rate_hz > 0.0 else 0.0
+        self._next_s += period
+        if self._next_s <= t_s + 1e-9:
+            self._next_s = t_s + period
+        if self._answer_due:
+            self._send_answer()
+        t0 = time.monotonic()
+        end = t0 + self.params.lockstep_timeout_s
+        frames: int | None = 0
+        while frames == 0:
+            frames = self._receive(max(end - time.monotonic(), 0.0))
+            if frames == 0 and time.monotonic() >= end:
+                frames = None
+        self.wait_wall_s += time.monotonic() - t0
+        if frames is None:
+            self.counters['lockstep_timeouts'] += 1
+            self._silent += 1
+            if self._silent >= self.params.max_silent_frames:
+                raise ConnectionError(f'ArduCopter sent no servo frame for '
+                                      f'{self._silent * self.params.lockstep_timeout_s:g} s')
+            return
+        self._silent = 0
         self.counters['frames'] += 1
-        self._answer = self._state()
-        self.link.send(self._answer)
-        self.counters['answers'] += 1
-        return dt
+        self._answer_due = True
 
     def _parse(self, data: bytes) -> tuple[int, int, tuple[int, ...]] | None:
         if len(data) == _SERVO_16.size:
