@@ -76,7 +76,7 @@ def hil_world(**kw):
 
 def test_sensors_at_rest_are_gravity_earth_field_and_isa_pressure():
     world, hil, fake = hil_world()
-    hil.step(2.0)                                   # 500 periods on the ground, no PX4 yet
+    world.step(2.0)                                 # 500 periods on the ground, no PX4 yet
     assert world.resting_on == 'ground' and world.contact is None
     imu = fake.last('HIL_SENSOR')
     assert len(imu) == 500 and imu[0].time_usec == 1_000_000
@@ -117,8 +117,8 @@ def test_sensors_at_rest_are_gravity_earth_field_and_isa_pressure():
 def test_motor_outputs_drive_the_motors_through_the_thrust_curve():
     world, hil, fake = hil_world(auto_controls=([0.647, 0.647, 0.647, 0.647], True))
     vp = world.params
-    hil.step(0.004)                    # first period: PX4's answer arrives during the read
-    hil.step(1.0)
+    world.step(0.004)                  # first period: PX4's answer arrives during the read
+    world.step(1.0)
     e = hil.params.thrust_expo
     f = vp.motor_max_n * (e * 0.647 ** 2 + (1 - e) * 0.647)
     assert world.vehicle.motor_cmd == pytest.approx((f,) * 4)
@@ -127,17 +127,17 @@ def test_motor_outputs_drive_the_motors_through_the_thrust_curve():
     assert 4 * f / (vp.mass_kg * vp.gravity_mps2) == pytest.approx(0.4986 * 2, abs=1e-3)
     assert hil.counters['lockstep_timeouts'] == 0 and hil.counters['controls_rx'] >= 250
     fake.auto = ([0.9, 0.9, 0.9, 0.9], False)                  # disarmed: motors off
-    hil.step(0.1)
+    world.step(0.1)
     assert world.vehicle.motor_cmd == (0.0, 0.0, 0.0, 0.0) and not hil.armed
 
 
 def test_lockstep_waits_for_px4_and_counts_a_silent_period():
-    _, hil, fake = hil_world(auto_controls=([0.0] * 4, True))
-    hil.step(0.008)
+    world, hil, fake = hil_world(auto_controls=([0.0] * 4, True))
+    world.step(0.008)
     assert hil.got_first_controls
     fake.auto = None                                           # PX4 stops answering
     t0 = time.monotonic()
-    hil.step(0.004)
+    world.step(0.004)
     assert time.monotonic() - t0 >= 0.05                       # waited lockstep_timeout_s
     assert hil.counters['lockstep_timeouts'] == 1
 
@@ -174,7 +174,7 @@ class Lockstep:
         start, t0 = time.monotonic(), w.t_s
         try:
             while not self.stop.is_set():
-                self.hil.step(self.hil.period_s)
+                w.step(self.hil.period_s)
                 ahead = (w.t_s - t0) - (time.monotonic() - start)
                 if ahead > 0.0:
                     time.sleep(ahead)

@@ -176,12 +176,13 @@ def pwm_to_thrust(pwm_us: int, json: JsonParams, motor_max_n: float) -> float:
 class ArduPilotJson:
     """ArduCopter in the loop as the world's autopilot: servo PWM in, sensors out, lockstep.
 
-    The simulator loop drives it like any :class:`~deck_simulator.px4_hil.SimAutopilot`:
-    :meth:`accept` once (ArduCopter's first servo packet), then :meth:`step` with the loop's
-    time step. Each servo frame ArduCopter sends: PWM → motor thrusts, the world steps by the
-    frames elapsed / frame rate, and the answer (stamped with the world's time, which is
-    ArduCopter's clock) goes back; a frame sent again (ArduCopter resends after ~1 s without an
-    answer) gets the same answer again, a frame count going back is a reboot. :attr:`armed` is
+    Two ways to drive it: as the world's :class:`~deck_simulator.autopilot.Autopilot`
+    (:meth:`accept` once, then the world's steps :meth:`tick` it, as ``px4_hil.Px4Hil``), or
+    :meth:`step` with a time step from a lockstep thread of one's own. Each servo frame
+    ArduCopter sends: PWM → motor thrusts, the world steps by a frame period, and the answer
+    (stamped with the world's time, which is ArduCopter's clock) goes back; a frame sent again
+    (ArduCopter resends after ~1 s without an answer) gets the same answer again, a frame
+    count going back is a reboot. :attr:`armed` is
     inferred from the outputs (ArduCopter idles armed motors at ``MOT_SPIN_ARM``, above
     ``MOT_PWM_MIN``). ``start_on_ground`` rests the vehicle on the surface below its start.
     """
@@ -216,7 +217,7 @@ class ArduPilotJson:
             place_on_ground(world)
         world.vehicle.set_motor_thrusts(0.0, 0.0, 0.0, 0.0)
 
-    # --- the SimAutopilot protocol ---------------------------------------------------------
+    # --- connection and the step() mode ---------------------------------------------------------
 
     def accept(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for ArduCopter's first servo frame (and answer it)."""

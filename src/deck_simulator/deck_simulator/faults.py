@@ -369,6 +369,7 @@ class FaultSet:
     def __init__(self, specs: tuple[FaultSpec, ...], seed: int,
                  apron_xy: tuple[float, float] = (0.0, 0.0), deck_mean_m: float = 0.0) -> None:
         self.specs = specs
+        self._t0_s = 0.0          # scenario times count from here (start_at)
         self.all = [_Active(s, i, seed) for i, s in enumerate(specs)]
         self.pending = [a for a in self.all if a.spec.trigger_height_m is not None]
         by: dict[str, list[_Active]] = {}
@@ -426,11 +427,25 @@ class FaultSet:
 
     # --- windows ---------------------------------------------------------------------------
 
+    def start_at(self, t0_s: float | None) -> None:
+        """Scenario fault times count from ``t0_s`` (world time) instead of 0; None holds
+        every fault off until a later call. For a world that runs before the mission starts
+        (PX4 SITL: its boot and take-off before the landing trigger); height triggers are
+        re-armed."""
+        self._t0_s = math.inf if t0_s is None else float(t0_s)
+        for a in self.all:
+            s = a.spec
+            if s.trigger_height_m is None:
+                a.on, a.off = s.start_s + self._t0_s, s.end_s + self._t0_s
+            else:
+                a.on = a.off = math.inf
+        self.pending = [a for a in self.all if a.spec.trigger_height_m is not None]
+
     def update_height(self, t: float, height_m: float) -> None:
         """Open height-triggered windows (called by the world each physics sub-step)."""
         for a in self.pending:
             s = a.spec
-            if t >= s.start_s and height_m < s.trigger_height_m:
+            if t >= s.start_s + self._t0_s and height_m < s.trigger_height_m:
                 a.on = t
                 a.off = t + s.duration_s
         self.pending = [a for a in self.pending if a.on == math.inf]

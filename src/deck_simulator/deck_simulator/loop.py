@@ -1,8 +1,9 @@
 """The simulator's hardware emulation stepped in sim time, and its wall-clock schedule (pure).
 
 :class:`SimulationLoop` is everything the simulator node does between its timer and its
-publishers: the world, the emulated PX4 on the MAVLink wire (with the scenario's link faults),
-the Pixy datagrams, the autopilot the world flies, truth samples and the outcome record.
+publishers: the world, the autopilot the world flies (the emulated PX4 on the MAVLink wire, or
+a real firmware in lockstep such as PX4 SITL), the scenario's link faults on the wire, the Pixy
+datagrams, truth samples and the outcome record.
 :class:`TickSchedule` gives the node's thread absolute fixed-rate deadlines. No rclpy: the
 node (``deck_simulator.node``) only adds the thread, the sockets, parameters and topics.
 """
@@ -12,11 +13,12 @@ from __future__ import annotations
 from collections.abc import Callable
 import math
 import threading
+from typing import Any
 
 from deckland_common.frames import mat_t_vec, rot_body_to_world
 from pixy_driver.protocol import block_in_range, encode_frame
 
-from deck_simulator.autopilot import EmulatedAutopilot, with_link_fault
+from deck_simulator.autopilot import Autopilot, EmulatedAutopilot, with_link_fault
 from deck_simulator.link import ImpairedLink
 from deck_simulator.outcome import landing_outcome, outcome_dict
 from deck_simulator.px4_emulator import Px4Emulator
@@ -45,38 +47,62 @@ def body_twist(tr: Truth) -> tuple[tuple[float, float, float], tuple[float, floa
 
 
 class SimulationLoop:
-    """World + emulated PX4 + Pixy wire + outcome, stepped in sim time.
+    """World + autopilot + MAVLink link faults + Pixy wire + outcome, stepped in sim time.
 
-    The world flies one :class:`~deck_simulator.autopilot.EmulatedAutopilot` (the emulator
-    is its MAVLink face; a scenario link fault's settings configure it, with no hold before
-    the failsafe action and no automatic re-engagement: the bridge asks for OFFBOARD itself).
-    The vehicle starts armed, in the air, in POSCTL. ``advance(dt_s)`` runs as many
-    ``1 / physics_rate_hz`` sub-steps as fit (the remainder is carried over) and returns
-    ``(truth_samples, outcome_or_None)``; per sub-step, at the scenario's sensor rates:
-    telemetry into the emulator (``imu.rate_hz``; lidar at ``lidar.rate_hz``), a Pixy datagram
-    (``camera.rate_hz``), the emulator's input (``AUTOPILOT_INPUT_HZ``), truth samples
-    (``truth_rate_hz``). ``on_planner_mode`` may be called from another thread.
+    Two autopilot backends, one loop. Emulated (``emulator`` given): the world flies one
+    :class:`~deck_simulator.autopilot.EmulatedAutopilot` (the emulator is its MAVLink face; a
+    scenario link fault's settings configure it, with no hold before the failsafe action and
+    no automatic re-engagement: the bridge asks for OFFBOARD itself); the vehicle starts
+    armed, in the air, in POSCTL. Firmware (``firmware(world)`` returns the world's
+    :class:`~deck_simulator.autopilot.Autopilot`, e.g. ``px4_hil.Px4Hil``, attached to the
+    world; ``emulator`` None): the firmware talks MAVLink to the companion itself; with wire
+    faults ``relay = (companion_side, firmware_side)`` transports carry that link through
+    the scenario's faults. ``advance(dt_s)`` runs as many ``1 / physics_rate_hz`` sub-steps as
+    fit (the remainder is carried over) and returns ``(truth_samples, outcome_or_None)``; per
+    sub-step, at the scenario's sensor rates: telemetry into the emulator (``imu.rate_hz``;
+    lidar at ``lidar.rate_hz``), a Pixy datagram (``camera.rate_hz``), the emulator's input
+    (``AUTOPILOT_INPUT_HZ``) or the relay, truth samples (``truth_rate_hz``), then
+    ``world.step`` (the autopilot ticks in there). ``on_planner_mode`` may be called from
+    another thread.
     """
 
-    def __init__(self, scenario: Scenario, seed: int, emulator: Px4Emulator,
+    def __init__(self, scenario: Scenario, seed: int, emulator: Px4Emulator | None,
                  pixy_send: Callable[[bytes], None], physics_rate_hz: float = 400.0,
-                 truth_rate_hz: float = 50.0, link_downlink: str = 'cut') -> None:
+                 truth_rate_hz: float = 50.0, link_downlink: str = 'cut',
+                 firmware: Callable[[World], Autopilot] | None = None,
+                 relay: tuple[Any, Any] | None = None) -> None:
+        if (emulator is None) == (firmware is None):
+            raise ValueError('SimulationLoop: give either an emulator or a firmware backend')
         self.scenario = scenario
         self.seed = seed
         self.world = world = World(scenario, seed, physics_dt_s=1.0 / physics_rate_hz)
         self.emulator = emulator
         fs = world.faults
-        params = emulator.params.autopilot_params()
-        if fs is not None and fs.has_link:   # COM_OF_LOSS_T, MPC_LAND_SPEED, RTL, ...
-            params = with_link_fault(params, fs.link_spec)
-        self.autopilot = EmulatedAutopilot(params, world)
-        world.attach_autopilot(self.autopilot)
-        emulator.use_autopilot(self.autopilot)
-        # the scenario's MAVLink faults act on the wire; a node_kill is a real kill
         self.link: ImpairedLink | None = None
-        if ImpairedLink.wire_faults(fs):
-            self.link = ImpairedLink(emulator.transport, world, seed, link_downlink)
-            emulator.set_transport(self.link)
+        self.relay: tuple[Any, Any] | None = None
+        self.autopilot: Any
+        if emulator is not None:
+            params = emulator.params.autopilot_params()
+            if fs is not None and fs.has_link:   # COM_OF_LOSS_T, MPC_LAND_SPEED, RTL, ...
+                params = with_link_fault(params, fs.link_spec)
+            self.autopilot = EmulatedAutopilot(params, world)
+            world.attach_autopilot(self.autopilot)
+            emulator.use_autopilot(self.autopilot)
+            # the scenario's MAVLink faults act on the wire; a node_kill is a real kill
+            if ImpairedLink.wire_faults(fs):
+                self.link = ImpairedLink(emulator.transport, world, seed, link_downlink)
+                emulator.set_transport(self.link)
+        else:
+            assert firmware is not None
+            self.autopilot = firmware(world)
+            world.attach_autopilot(self.autopilot)
+            if fs is not None:   # the firmware boots and takes off first: faults count
+                fs.start_at(None)   # from the landing trigger
+            if relay is not None:
+                companion, fw = relay
+                if ImpairedLink.wire_faults(fs):
+                    self.link = companion = ImpairedLink(companion, world, seed, link_downlink)
+                self.relay = (companion, fw)
         self.pixy_send = pixy_send
         self.h_s = 1.0 / physics_rate_hz
         sp = scenario.sensors
@@ -93,15 +119,19 @@ class SimulationLoop:
         self.searches = 0
         self.outcome: dict | None = None
         self.counters = {'substeps': 0, 'pixy_frames': 0, 'pixy_blocks_dropped': 0,
-                         'pixy_send_errors': 0, 'offboard_steps': 0, 'autopilot_steps': 0}
+                         'pixy_send_errors': 0, 'offboard_steps': 0, 'autopilot_steps': 0,
+                         'relayed_up': 0, 'relayed_down': 0}
         self.rejected: dict[str, int] = {'bad_dt': 0, 'bad_mode': 0}
-        # the vehicle hovers armed in POSCTL at the start (PX4 after a manual take-off)
-        self._take('lidar', 0.0)
-        self._range_m = world.read_lidar()
-        self._take('telemetry', 0.0)
-        self._telemetry(0.0)
-        self.autopilot.start_in_air(0.0)
-        self.last_kind = self.autopilot.kind
+        self.last_kind = 'firmware'
+        self._faults_dormant = emulator is None and fs is not None
+        if emulator is not None:
+            # the vehicle hovers armed in POSCTL at the start (PX4 after a manual take-off)
+            self._take('lidar', 0.0)
+            self._range_m = world.read_lidar()
+            self._take('telemetry', 0.0)
+            self._telemetry(0.0)
+            self.autopilot.start_in_air(0.0)
+            self.last_kind = self.autopilot.kind
 
     # --- inputs from other threads -------------------------------------------------------
 
@@ -122,7 +152,8 @@ class SimulationLoop:
     def rejection_counts(self) -> dict[str, int]:
         """What was rejected (the wire, the world, this loop, the autopilot) or dropped (Pixy
         blocks out of range, send errors, datagrams the scenario's MAVLink faults took)."""
-        counts = {f'mavlink.{k}': v for k, v in self.emulator.rejected.items()}
+        counts = ({f'mavlink.{k}': v for k, v in self.emulator.rejected.items()}
+                  if self.emulator is not None else {})
         counts.update({f'world.{k}': v for k, v in self.world.rejected.items()})
         counts.update({f'sim.{k}': v for k, v in self.rejected.items()})
         counts.update({f'autopilot.{k}': v for k, v in self.autopilot.rejected.items()})
@@ -160,14 +191,22 @@ class SimulationLoop:
     def _substep(self, samples: list[Truth]) -> dict | None:
         world = self.world
         t = world.t_s
-        if self._take('lidar', t):
-            self._range_m = world.read_lidar()
-        if self._take('telemetry', t):
-            self._telemetry(t)
+        if self.emulator is not None:
+            if self._take('lidar', t):
+                self._range_m = world.read_lidar()
+            if self._take('telemetry', t):
+                self._telemetry(t)
         if self._take('camera', t):
             self._camera()
-        if self._take('control', t):
-            self._control(t)
+        if self.emulator is not None:
+            if self._take('control', t):
+                self._control(t)
+        else:
+            if self._faults_dormant and self.trigger_t_s is not None:
+                self._faults_dormant = False
+                world.faults.start_at(self.trigger_t_s)
+            if self.relay is not None:
+                self._relay()
         world.step(self.h_s)      # the autopilot flies the non-offboard modes in here
         self.counters['substeps'] += 1
         t = world.t_s
@@ -199,6 +238,18 @@ class SimulationLoop:
             self.counters['pixy_frames'] += 1
         except (OSError, ValueError):
             self.counters['pixy_send_errors'] += 1
+
+    def _relay(self) -> None:
+        """The companion <-> firmware link (every sub-step), through the wire faults."""
+        companion, fw = self.relay
+        for data, addr in companion.receive():
+            companion.set_peer(addr)
+            fw.send(data)
+            self.counters['relayed_up'] += 1
+        for data, addr in fw.receive():
+            fw.set_peer(addr)
+            companion.send(data)
+            self.counters['relayed_down'] += 1
 
     def _control(self, t: float) -> None:
         self.emulator.update(t)   # bytes from the wire: setpoints, commands (bad ones counted)

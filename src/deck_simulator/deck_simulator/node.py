@@ -1,7 +1,8 @@
 """ROS 2 node ``deck_simulator``: the simulated world on the wall clock, emulating the hardware.
 
-A thin adapter around :class:`deck_simulator.loop.SimulationLoop` (the world, the emulated
-PX4 on the MAVLink wire, the Pixy datagrams, the outcome record): parameters, the sockets, a
+A thin adapter around :class:`deck_simulator.loop.SimulationLoop` (the world; its autopilot,
+the emulated PX4 on the MAVLink wire or PX4 SITL in lockstep (``autopilot: px4-sitl``,
+:mod:`deck_simulator.px4_hil`); the Pixy datagrams; the outcome record): parameters, sockets, a
 thread that advances the loop on absolute deadlines (:class:`~deck_simulator.loop.TickSchedule`,
 ``tick_s × realtime_factor`` of sim time per tick, stalls over ``MAX_TICK_WALL_S`` given up),
 the ``sim/truth/*`` topics stamped with the wall time each sample stands for, the latched
@@ -35,10 +36,12 @@ from deck_simulator.link import DOWNLINK_MODES
 from deck_simulator.loop import SimulationLoop, TickSchedule, body_twist
 from deck_simulator.outcome import outcome_json
 from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator, vehicle_thrust_calibration
+from deck_simulator.px4_hil import HilParams, Px4Hil
 from deck_simulator.scenario import load_scenario
 from deck_simulator.transport import is_ipv4, is_mavlink_url, make_mavlink_link
 from deck_simulator.world import Truth
 
+LOCKSTEP_REPORT_S = 5.0          # px4-sitl: how often the lockstep rate is logged
 MAX_TICK_WALL_S = 0.1            # a longer stall is not caught up (the sim slows down instead)
 #: a GIL switch interval of 1 ms (CPython's default is 5 ms) so the world thread wakes on time
 #: even while an executor thread of this process runs Python code
@@ -50,6 +53,16 @@ PARAMS = [
               lambda v: v.strip() != '', 'must not be empty'),
     ParamSpec('seed', 1, 'seed of every random stream of the world', lambda v: v >= 0,
               'must be >= 0'),
+    one_of('autopilot', 'emulator', ('emulator', 'px4-sitl'),
+           "what flies the vehicle: 'emulator' (the emulated PX4 on mavlink_url) or "
+           "'px4-sitl' (PX4 SITL, airframe 10016, connects to px4_sim_port; deckland up "
+           '--autopilot px4-sitl starts it)'),
+    in_range('px4_sim_port', 4560, 1, 65535, 'px4-sitl: TCP port PX4 connects to (the '
+             'Simulator MAVLink API: 4560 + PX4 instance)'),
+    ParamSpec('px4_onboard_url', '', "px4-sitl: PX4's onboard link as 'udpin:HOST:PORT' "
+              "(14540 + instance) to carry it through the scenario's MAVLink faults to the "
+              "bridge on mavlink_url; empty = the bridge talks to PX4 directly",
+              lambda v: v == '' or is_mavlink_url(v), "must be empty or 'udpin:IPV4:PORT'"),
     ParamSpec('mavlink_url', 'udpout:127.0.0.1:14540',
               "emulated autopilot's MAVLink socket: 'udpout:HOST:PORT' sends to the bridge "
               "listening there (bridge default 'udpin:127.0.0.1:14540'); 'udpin:HOST:PORT' "
@@ -97,6 +110,12 @@ class DeckSimulatorNode(Node):
         self._thread: threading.Thread | None = None
         self._pixy_sock: socket.socket | None = None
         self.emulator: Px4Emulator | None = None
+        self.hil: Px4Hil | None = None
+        self._links: list = []
+        self.px4_lost = ''
+        self._lockstep_last: tuple[float, float, float] | None = None
+        self._at_trigger: tuple[float, float, int, float] | None = None
+        self.lockstep_rate = float('nan')
         try:
             self._setup()
         except Exception:
@@ -116,29 +135,23 @@ class DeckSimulatorNode(Node):
             scenario = load_scenario(p['scenario'])
         except ValueError as exc:
             raise ParameterError(f"parameter 'scenario': {exc}") from None
-        try:
-            link = make_mavlink_link(p['mavlink_url'])
-        except OSError as exc:
-            raise ParameterError(f"parameter 'mavlink_url' = {p['mavlink_url']!r}: cannot "
-                                 f'open the socket: {exc}') from None
-        # the autopilot maps normalised thrust to the *vehicle's* newtons: hover at 1/(T/W)
-        self.emulator = Px4Emulator(EmulatorParams(
-            thrust=vehicle_thrust_calibration(scenario.vehicle),
-            offboard_loss_action=p['offboard_loss_action']), transport=link)
-        if p['signing_key_file']:
-            # signing timestamps: 10 µs units since 2015-01-01 (wall clock, as PX4 with RTC)
-            self.emulator.setup_signing(load_signing_key(p['signing_key_file']),
-                                        int(max(time.time() - 1420070400.0, 0.0) * 1e5))
-        self._pixy_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        pixy_addr = (p['pixy_udp_address'], p['pixy_udp_port'])
-        sock = self._pixy_sock
-
-        def pixy_send(data: bytes) -> None:
-            sock.sendto(data, pixy_addr)
-
-        self.sim = SimulationLoop(scenario, p['seed'], self.emulator, pixy_send,
-                                  p['physics_rate_hz'], p['truth_rate_hz'],
-                                  p['mavlink_fault_downlink'])
+        if p['autopilot'] == 'px4-sitl':
+            self.sim = self._px4_loop(scenario, p)
+            local, target = None, f"PX4 SITL on TCP {p['px4_sim_port']}"
+        else:
+            link = self._open_link('mavlink_url', p['mavlink_url'])
+            # the autopilot maps normalised thrust to the *vehicle's* newtons: hover at 1/(T/W)
+            self.emulator = Px4Emulator(EmulatorParams(
+                thrust=vehicle_thrust_calibration(scenario.vehicle),
+                offboard_loss_action=p['offboard_loss_action']), transport=link)
+            if p['signing_key_file']:
+                # signing timestamps: 10 µs units since 2015-01-01 (wall clock, as PX4 with RTC)
+                self.emulator.setup_signing(load_signing_key(p['signing_key_file']),
+                                            int(max(time.time() - 1420070400.0, 0.0) * 1e5))
+            self.sim = SimulationLoop(scenario, p['seed'], self.emulator, self._pixy_sender(),
+                                      p['physics_rate_hz'], p['truth_rate_hz'],
+                                      p['mavlink_fault_downlink'])
+            local, target = link.local_address, f"MAVLink {p['mavlink_url']}"
         self.schedule: TickSchedule | None = None
         self.thread_errors = 0
         self._warned: dict[str, int] = {}
@@ -147,16 +160,67 @@ class DeckSimulatorNode(Node):
         self.pub_outcome = self.create_publisher(String, 'sim/outcome', LATCHED_QOS)
         self.create_subscription(String, 'planner/mode', self._on_mode, LATCHED_QOS)
         self.create_timer(1.0, self._report_rejections)
-        local = link.local_address
+        where = f' (local {local[0]}:{local[1]})' if local else ''
+        pixy_addr = (p['pixy_udp_address'], p['pixy_udp_port'])
         self.get_logger().info(
-            f"scenario {scenario.name!r} seed {p['seed']}: MAVLink {p['mavlink_url']} "
-            f'(local {local[0]}:{local[1]}), Pixy -> {pixy_addr[0]}:{pixy_addr[1]}, '
-            f"x{p['realtime_factor']:g} real time")
+            f"scenario {scenario.name!r} seed {p['seed']}: {target}{where}, Pixy -> "
+            f"{pixy_addr[0]}:{pixy_addr[1]}, x{p['realtime_factor']:g} real time")
+
+    def _open_link(self, name: str, url: str):
+        try:
+            link = make_mavlink_link(url)
+        except OSError as exc:
+            raise ParameterError(f'parameter {name!r} = {url!r}: cannot open the socket: '
+                                 f'{exc}') from None
+        self._links.append(link)
+        return link
+
+    def _pixy_sender(self):
+        self._pixy_sock = sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        addr = (self.cfg['pixy_udp_address'], self.cfg['pixy_udp_port'])
+
+        def pixy_send(data: bytes) -> None:
+            sock.sendto(data, addr)
+
+        return pixy_send
+
+    def _px4_loop(self, scenario, p) -> SimulationLoop:
+        """PX4 SITL flies the world (lockstep on TCP ``px4_sim_port``); with
+        ``px4_onboard_url`` the simulator relays PX4's onboard link to the bridge through the
+        scenario's MAVLink faults."""
+        relay = None
+        if p['px4_onboard_url']:
+            if not p['px4_onboard_url'].startswith('udpin:'):
+                raise ParameterError("parameter 'px4_onboard_url' must be 'udpin:HOST:PORT' "
+                                     '(where PX4 sends its onboard link)')
+            # PX4 sends there unasked; the relay answers whoever sent (PX4's 14580 + i)
+            relay = (self._open_link('mavlink_url', p['mavlink_url']),
+                     self._open_link('px4_onboard_url', p['px4_onboard_url']))
+
+        def firmware(world) -> Px4Hil:
+            try:
+                self.hil = Px4Hil(world, HilParams(port=p['px4_sim_port'], seed=p['seed']))
+            except ValueError as exc:
+                raise ParameterError(f"parameter 'physics_rate_hz' = {p['physics_rate_hz']:g} "
+                                     f'with autopilot px4-sitl: {exc}') from None
+            except OSError as exc:
+                raise ParameterError(f"parameter 'px4_sim_port' = {p['px4_sim_port']}: cannot "
+                                     f'listen: {exc}') from None
+            return self.hil
+
+        return SimulationLoop(scenario, p['seed'], None, self._pixy_sender(),
+                              p['physics_rate_hz'], p['truth_rate_hz'],
+                              p['mavlink_fault_downlink'], firmware=firmware, relay=relay)
 
     # --- callbacks -----------------------------------------------------------------------
 
     def _on_mode(self, msg: String) -> None:
+        before = self.sim.trigger_t_s
         self.sim.on_planner_mode(msg.data)
+        if before is None and self.sim.trigger_t_s is not None:
+            # the world's health over the mission is reported with the outcome (px4-sitl)
+            self._at_trigger = (time.monotonic(), self.sim.world.t_s, self.overruns,
+                                self.hil.wait_wall_s if self.hil is not None else 0.0)
 
     def _report_rejections(self) -> None:
         """Log (once per change) what was rejected or dropped, and stalls not caught up."""
@@ -166,6 +230,42 @@ class DeckSimulatorNode(Node):
         if grown:
             self._warned.update(grown)
             self.get_logger().warning(f'rejected/dropped so far: {grown}')
+        if self.hil is not None:
+            self._report_lockstep()
+
+    def lockstep_health(self) -> dict:
+        """px4-sitl, from the landing trigger to now: sim seconds per wall second, stalls
+        (ticks more than MAX_TICK_WALL_S late, their backlog dropped), lockstep timeouts, and
+        the share of wall time spent waiting for PX4."""
+        hil = self.hil
+        assert hil is not None
+        now, t_sim, stalls, wait = (time.monotonic(), self.sim.world.t_s, self.overruns,
+                                    hil.wait_wall_s)
+        t0, s0, n0, w0 = self._at_trigger or (now, t_sim, stalls, wait)
+        wall = now - t0
+        return {'realtime_factor': round((t_sim - s0) / wall, 3) if wall > 0 else None,
+                'stalls': stalls - n0, 'stalls_total': stalls,
+                'timeouts': hil.counters['lockstep_timeouts'],
+                'wait_share': round((wait - w0) / wall, 3) if wall > 0 else None}
+
+    def _report_lockstep(self) -> None:
+        """px4-sitl, every LOCKSTEP_REPORT_S: sim seconds per wall second, the share of wall
+        time spent waiting for PX4, lockstep timeouts (the graph runs on the wall clock: a
+        world slower than real time is a slow-motion world for it)."""
+        hil, now = self.hil, time.monotonic()
+        w = (now, self.sim.world.t_s, hil.wait_wall_s)
+        last = self._lockstep_last
+        if last is None or now - last[0] < LOCKSTEP_REPORT_S:
+            if last is None:
+                self._lockstep_last = w
+            return
+        self._lockstep_last = w
+        wall = now - last[0]
+        self.lockstep_rate = (w[1] - last[1]) / wall
+        self.get_logger().info(
+            f'lockstep: x{self.lockstep_rate:.2f} real time, waiting for PX4 '
+            f'{100.0 * (w[2] - last[2]) / wall:.0f} % of the wall time, '
+            f"{hil.counters['lockstep_timeouts']} timeouts, {self.overruns} stalls")
 
     # --- the wall-clock thread -----------------------------------------------------------
 
@@ -174,9 +274,25 @@ class DeckSimulatorNode(Node):
         """Stalls longer than ``MAX_TICK_WALL_S`` (their backlog was not caught up)."""
         return self.schedule.overruns if self.schedule is not None else 0
 
+    def _wait_for_px4(self) -> bool:
+        """px4-sitl: hold the world at t = 0 until PX4 connects (False: stopped first)."""
+        hil = self.hil
+        if hil is None:
+            return True
+        log = self.get_logger()
+        log.info(f'waiting for PX4 on TCP {hil.params.host}:{hil.params.port}')
+        while not self._stop.is_set():
+            if hil.accept(0.2):
+                log.info('PX4 connected: lockstep on the world clock')
+                return True
+        return False
+
     def _run(self) -> None:
         """The world thread: tick k at ``start + k · tick_s`` (absolute, see TickSchedule);
-        each tick advances the world by ``tick_s × realtime_factor``."""
+        each tick advances the world by ``tick_s × realtime_factor``. With PX4 the world
+        waits for its connection first and stops when PX4 goes away."""
+        if not self._wait_for_px4():
+            return
         rtf, period = self.cfg['realtime_factor'], self.cfg['tick_s']
         sched = TickSchedule(period, MAX_TICK_WALL_S, time.monotonic())
         self.schedule = sched
@@ -194,6 +310,11 @@ class DeckSimulatorNode(Node):
                 t0_sim = self.sim.world.t_s
                 samples, outcome = self.sim.advance(sim_dt)
                 self._publish(samples, outcome, rtf, deadline, t0_sim)
+            except ConnectionError as exc:   # PX4 closed the simulator link: nothing flies
+                self.px4_lost = str(exc)
+                self.get_logger().error(f'{exc}: the world stops at t = '
+                                        f'{self.sim.world.t_s:.2f} s')
+                break
             except Exception as exc:  # never let one bad tick kill the world thread
                 if stop.is_set() or not self.context.ok():
                     break
@@ -212,6 +333,8 @@ class DeckSimulatorNode(Node):
                 self.pub_vehicle.publish(self._vehicle_msg(tr, stamp_s))
                 self.pub_apron.publish(self._apron_msg(tr, stamp_s))
         if outcome is not None:
+            if self.hil is not None:
+                outcome = {**outcome, 'lockstep': self.lockstep_health()}
             text = outcome_json(outcome)
             self.pub_outcome.publish(String(data=text))
             self.get_logger().info(f'outcome: {text}')
@@ -247,9 +370,10 @@ class DeckSimulatorNode(Node):
     # --- shutdown ------------------------------------------------------------------------
 
     def _close_io(self) -> None:
-        if self.emulator is not None:
-            with contextlib.suppress(Exception):
-                self.emulator.close()
+        for closable in (self.emulator, self.hil, *self._links):
+            if closable is not None:
+                with contextlib.suppress(Exception):
+                    closable.close()
         if self._pixy_sock is not None:
             with contextlib.suppress(Exception):
                 self._pixy_sock.close()

@@ -19,7 +19,6 @@ import random
 import select
 import socket
 import time
-from typing import Protocol
 
 from deckland_common.frames import enu_to_ned, flu_to_frd, mat_t_vec, ned_to_enu, rot_body_to_world
 from mavlink_bridge.conversions import (
@@ -147,21 +146,6 @@ def place_on_ground(w: World) -> None:
     w.resting_on = 'pad' if tr.over_pad and tr.surface_height_m > 0.0 else 'ground'
 
 
-class SimAutopilot(Protocol):
-    """What the simulator loop needs of a real autopilot flying the world's vehicle (PX4
-    over the Simulator MAVLink API here; ArduPilot's JSON backend, issue 17, is the same
-    shape): connect, then advance the world in the autopilot's lockstep."""
-
-    armed: bool
-    counters: dict[str, int]
-
-    def accept(self, timeout_s: float) -> bool: ...
-
-    def step(self, dt_s: float) -> int: ...
-
-    def close(self) -> None: ...
-
-
 class TcpServerLink:
     """The simulator's TCP endpoint: listens on ``(host, port)``, one peer (PX4)."""
 
@@ -214,27 +198,38 @@ class TcpServerLink:
 class Px4Hil:
     """PX4 in the loop as the world's autopilot: sensors out, motor outputs in, lockstep.
 
-    The simulator loop drives it like any autopilot backend: :meth:`accept` once (PX4 connects
-    after its boot starts), then :meth:`step` with the loop's time step; it runs whole lockstep
-    periods of ``1 / imu_rate_hz`` (the remainder is carried to the next call), each: sensors
-    at ``world.t_s`` → PX4 → HIL_ACTUATOR_CONTROLS → motor thrusts → ``world.step(period)``.
-    Until PX4's first actuator message the world is not held back (PX4 boots on our clock);
-    afterwards each period waits up to ``lockstep_timeout_s`` (wall) for PX4's answer to it
-    (a timeout is counted, the last outputs kept). ``start_on_ground`` puts the vehicle at
-    rest on the ground below its start (motors off), for PX4's own take-off.
+    An :class:`~deck_simulator.autopilot.Autopilot` like the emulated one: the constructor
+    attaches it to ``world``, and :meth:`tick` runs at the start of every physics sub-step
+    (``World.step``). When a lockstep period (``1 / imu_rate_hz``, a whole number of physics
+    sub-steps) is due it sends the sensors at ``world.t_s`` and waits for PX4's
+    HIL_ACTUATOR_CONTROLS answering them, which set the motor thrusts the sub-steps of the
+    period fly. Until PX4's first actuator message the world is not held back (PX4 boots on
+    our clock); afterwards each period waits up to ``lockstep_timeout_s`` (wall) for PX4's
+    answer to it (a timeout is counted, the last outputs kept). ``start_on_ground`` puts the
+    vehicle at rest on the ground below its start (motors off), for PX4's own take-off.
+    PX4's failsafes are PX4's: it reports them over MAVLink, not on this link
+    (:attr:`failsafe` is None).
     """
+
+    failsafe = None          # PX4's failsafe state is on its MAVLink links, not this one
 
     def __init__(self, world: World, params: HilParams | None = None, link=None,
                  start_on_ground: bool = True) -> None:
         self.world = world
         self.params = p = params or HilParams()
+        self.period_s = 1.0 / p.imu_rate_hz
+        ratio = self.period_s / world.physics_dt_s
+        if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+            raise ValueError(
+                f'HilParams.imu_rate_hz = {p.imu_rate_hz:g}: the lockstep period must be a '
+                f'whole number of physics steps ({world.physics_dt_s * 1e3:g} ms; e.g. a '
+                'physics rate of 500 Hz for 250 Hz)')
         self.link = link if link is not None else TcpServerLink(p.host, p.port)
         self.mav = mavlink.MAVLink(self.link, srcSystem=1, srcComponent=51)
         self.mav.robust_parsing = True
         self.rx = mavlink.MAVLink(None)
         self.rx.robust_parsing = True
-        self.period_s = 1.0 / p.imu_rate_hz
-        self._pending_s = 0.0
+        self._next_s = world.t_s
         self._due = {'mag': 0.0, 'baro': 0.0, 'gps': 0.0, 'state': 0.0, 'range': 0.0}
         self._periods = {'mag': 1.0 / p.mag_rate_hz, 'baro': 1.0 / p.baro_rate_hz,
                          'gps': 1.0 / p.gps_rate_hz, 'state': 1.0 / p.state_rate_hz,
@@ -252,7 +247,9 @@ class Px4Hil:
         vp = world.params
         self._fmax = vp.motor_max_n
         self.controls: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+        self.active = True
         self.armed = False
+        self.failsafes = 0
         self.got_first_controls = False
         self._last_controls_us = -1
         self.counters = {'periods': 0, 'controls_rx': 0, 'lockstep_timeouts': 0,
@@ -262,6 +259,7 @@ class Px4Hil:
         if start_on_ground:
             self._place_on_ground()
         world.vehicle.set_motor_thrusts(0.0, 0.0, 0.0, 0.0)
+        world.attach_autopilot(self)
 
     # --- set-up --------------------------------------------------------------------------
 
@@ -277,28 +275,26 @@ class Px4Hil:
 
     # --- the lockstep ----------------------------------------------------------------------
 
-    def step(self, dt_s: float) -> int:
-        """Advance the world by ``dt_s`` in lockstep periods; returns the periods run."""
-        if not (isinstance(dt_s, int | float) and math.isfinite(dt_s) and dt_s >= 0.0):
-            self.rejected['nan'] += 1
-            return 0
-        self._pending_s += dt_s
-        n = int(self._pending_s / self.period_s + 1e-9)
-        self._pending_s = max(0.0, self._pending_s - n * self.period_s)
-        for _ in range(n):
-            self._period()
-        return n
+    def tick(self, t_s: float, world: World) -> None:
+        """Every physics sub-step at ``t_s`` (before the physics): the lockstep exchange when
+        a period is due. PX4 closing the connection raises ConnectionError."""
+        if t_s + 1e-9 < self._next_s:
+            return
+        self._next_s += self.period_s
+        if self._next_s <= t_s + 1e-9:     # the world was stepped past whole periods
+            self._next_s = t_s + self.period_s
+        self._exchange()
 
     def time_usec(self) -> int:
         """PX4's clock: the world's time (µs), from 1 s (PX4 treats 0 as "never")."""
         return round((self.world.t_s + 1.0) * 1e6)
 
-    def _period(self) -> None:
+    def _exchange(self) -> None:
         t_us = self.time_usec()
         self._send_sensors(t_us)
         if self.got_first_controls:
-            end = time.monotonic() + self.params.lockstep_timeout_s
             t0 = time.monotonic()
+            end = t0 + self.params.lockstep_timeout_s
             while self._last_controls_us < t_us:
                 left = end - time.monotonic()
                 if left <= 0.0:
@@ -308,7 +304,6 @@ class Px4Hil:
             self.wait_wall_s += time.monotonic() - t0
         else:
             self._read(0.0)
-        self.world.step(self.period_s)
         self.counters['periods'] += 1
 
     def _read(self, timeout_s: float) -> None:

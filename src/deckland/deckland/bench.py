@@ -445,9 +445,19 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
     subs = graph_substitutions(types.SimpleNamespace(
         scenario=args.scenario, seed=args.seed, hardware=False, mavlink=None, pixy_port=None,
         area=(0.0, 0.0)))
-    tap_port = free_udp_port()
-    subs['mavlink_url'] = f'udpout:127.0.0.1:{tap_port}'   # bridge -> tap -> simulator
+    px4 = _px4_for_bench(args)
+    # bridge -> tap -> simulator; with PX4 the tap sits on PX4's onboard link (it listens
+    # where PX4 sends, 14540 + i, and relays to PX4's 14580 + i)
+    tap_port = free_udp_port() if px4 is None else px4.ports['onboard_remote']
+    sim_port = (_url_port(subs['sim_mavlink_url']) if px4 is None
+                else px4.ports['onboard_local'])
+    subs['mavlink_url'] = f'udpout:127.0.0.1:{tap_port}'
     graph = load_graph(args.graph or default_graph_path(), subs, hardware=False)
+    if px4 is not None:
+        px4.configure_graph(graph['nodes'])
+        for spec in graph['nodes']:
+            if spec.name == 'mavlink_bridge':
+                spec.parameters['connection'] = subs['mavlink_url']
     workdir = tempfile.mkdtemp(prefix='deckland_bench_')
     log_path = args.log or os.path.join(workdir, 'graph.log')
     tap_out = os.path.join(workdir, 'tap.txt')
@@ -458,14 +468,15 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
         tap = subprocess.Popen(
             [sys.executable, '-c', 'import sys; from deckland.bench import tap_main; '
              'sys.exit(tap_main(sys.argv[1:]))', str(tap_port),
-             str(_url_port(subs['sim_mavlink_url'])), tap_out],
+             str(sim_port), tap_out],
             stdin=subprocess.DEVNULL, start_new_session=True)
         monitor = None
         try:
             orch.start()
             monitor = MissionMonitor(graph.get('wait_for_topics', []))
             recorder = StreamRecorder(monitor.node)
-            silent = monitor.wait_flowing(args.startup_timeout)
+            silent = _px4_up(px4, monitor, args, out) if px4 is not None else []
+            silent = silent or monitor.wait_flowing(args.startup_timeout)
             if silent:
                 out.write(f'topics not flowing after {args.startup_timeout:.0f} s: {silent} '
                           f'(log: {log_path})\n')
@@ -477,6 +488,7 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
             t0_wall, t0 = time.time(), time.monotonic()
             ticks0 = {n: read_cpu_ticks(pid) for n, pid in pids.items()}
             tap0 = read_cpu_ticks(tap.pid)
+            px4_cpu0 = px4.px4.cpu_s() if px4 is not None else 0.0
             triggered, outcome_at = False, None
             while time.monotonic() - t0 < args.duration:
                 orch.check()
@@ -494,12 +506,16 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
             t1_wall, wall = time.time(), time.monotonic() - t0
             ticks1 = {n: read_cpu_ticks(pid) for n, pid in pids.items()}
             tap1 = read_cpu_ticks(tap.pid)
+            px4_cpu = (round(100.0 * (px4.px4.cpu_s() - px4_cpu0) / wall, 1)
+                       if px4 is not None else None)
             crashed = list(orch.crashed)
             outcome = monitor.outcome
         finally:
             if monitor is not None:
                 monitor.close()
             orch.stop()
+            if px4 is not None:
+                px4.stop()
             tap.send_signal(signal.SIGTERM)
             try:
                 tap.wait(timeout=3.0)
@@ -516,6 +532,8 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
         'landing': None if outcome is None else {
             k: outcome.get(k) for k in ('success', 'reason', 'time_to_land_s')},
         'crashed_nodes': [{'node': n, 'status': c} for n, c in crashed],
+        'autopilot': 'emulator' if px4 is None else 'px4-sitl',
+        'autopilot_cpu_percent': px4_cpu,
         'log': log_path,
         'machine': {'cpus': os.cpu_count(), 'loadavg_1min_before': load0[0],
                     'loadavg_1min_after': os.getloadavg()[0]},
@@ -526,12 +544,46 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
     return status, report
 
 
+def _px4_for_bench(args: argparse.Namespace):
+    """``--autopilot px4-sitl``: PX4 SITL started for the bench (deckland.sitl.mission)."""
+    if getattr(args, 'autopilot', 'emulator') != 'px4-sitl':
+        return None
+    from deck_simulator.scenario import load_scenario
+
+    from deckland.sitl.mission import Px4Mission
+    px4 = Px4Mission(load_scenario(args.scenario))
+    px4.start()
+    return px4
+
+
+def _px4_up(px4, monitor, args: argparse.Namespace, out) -> list[str]:
+    """PX4 up, the ground topics, the operator's take-off: the graph then flies as with the
+    emulator (the window starts in PX4's loiter). Returns what did not come up."""
+    from deckland.sitl.mission import operator_take_off
+
+    def log(text: str) -> None:
+        out.write(f'{text}\n')
+
+    ok, msg = px4.wait_up(args.startup_timeout)
+    silent = [] if ok else [msg]
+    silent = silent or monitor.wait_flowing(args.startup_timeout, skip=px4.GROUND_SILENT)
+    if not silent:
+        ok, msg = operator_take_off(px4, monitor, log)
+        silent = [] if ok else [msg]
+    return silent
+
+
 def _cmd_latency(args: argparse.Namespace) -> int:
     if not (args.duration > 0.0 and math.isfinite(args.duration)):
         print('deckland bench latency: --duration must be a positive number of seconds',
               file=sys.stderr)
         return 2
-    status, report = run_latency_bench(args)
+    from deckland.sitl.px4 import Px4NotFoundError, Px4StartError
+    try:
+        status, report = run_latency_bench(args)
+    except (Px4NotFoundError, Px4StartError) as exc:
+        print(f'deckland bench latency: {exc}', file=sys.stderr)
+        return 2
     if not report:
         return status
     text = json.dumps(report, indent=2, allow_nan=False) + '\n'
@@ -569,6 +621,9 @@ def register(sub) -> None:
     lat.add_argument('--graph', help='graph YAML (default: the packaged graph)')
     lat.add_argument('--log', help='node output log (default: a file in a temp directory)')
     lat.add_argument('--startup-timeout', type=float, default=40.0)
+    lat.add_argument('--autopilot', choices=('emulator', 'px4-sitl'), default='emulator',
+                     help='px4-sitl: PX4 SITL flies the simulated vehicle (it takes off first; '
+                     'PX4 CPU in autopilot_cpu_percent)')
     lat.set_defaults(func=_cmd_latency)
 
 

@@ -236,6 +236,9 @@ def write_plots(per_controller: dict[str, list[RunResult]], out_dir: pathlib.Pat
 
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
+    if args.autopilot == 'px4-sitl':   # the graph through PX4 SITL, one mission at a time
+        from deckland.sitl.campaign import cmd_sitl_campaign
+        return cmd_sitl_campaign(args)
     controllers = list(CONTROLLERS) if args.compare else [args.controller]
     reports, per_controller = [], {}
     backend = backends.from_args(args)
@@ -310,6 +313,8 @@ def register(sub) -> None:
     p.add_argument('--plots', help='write PNG distributions into this directory')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     accel.add_cores_argument(p)
+    from deckland.sitl.campaign import add_arguments as add_sitl_arguments
+    add_sitl_arguments(p)
     p.set_defaults(func=_cmd_campaign)
 
     s = sub.add_parser('sim', help='fly one seeded simulated landing in-process')

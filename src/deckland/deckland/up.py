@@ -12,6 +12,8 @@ receives them (so the bag covers the mission from the trigger on), request OFFBO
 so), ``node_kill`` faults of the scenario are injected (SIGKILL at ``start_s`` after the
 trigger), until the outcome, the timeout or SIGINT/SIGTERM. Then every child is stopped
 (within 5 s), the bag is finished, ``report.json`` is written and a summary is printed.
+``--autopilot px4-sitl``: PX4 SITL flies the simulated vehicle (:mod:`deckland.sitl.mission`:
+started first, an operator's take-off before OFFBOARD, disarm awaited, killed at the end).
 Exit codes: see :data:`EXIT_CODES` and ``src/deckland/README-up.md``.
 """
 
@@ -144,19 +146,27 @@ class MissionMonitor:
         if not self.vehicle_modes or self.vehicle_modes[-1][1] != msg.data:
             self.vehicle_modes.append((time.monotonic(), msg.data))
 
-    def wait_flowing(self, timeout_s: float, abort=None) -> list[str]:
-        """Wait until every watched topic has delivered messages; return the silent ones.
+    def wait_flowing(self, timeout_s: float, abort=None, skip=()) -> list[str]:
+        """Wait until every watched topic (but those in ``skip``) has delivered messages;
+        return the silent ones.
 
         ``abort()`` (optional) is polled every 0.1 s; when it returns true the wait ends early.
         """
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+        while True:
             self._subscribe_new()
-            silent = [t for t, n in self.counts.items() if n < 3]
-            if not silent or (abort is not None and abort()):
+            silent = [t for t, n in self.counts.items() if n < 3 and t not in skip]
+            if not silent or (abort is not None and abort()) or time.monotonic() >= deadline:
                 return silent
             time.sleep(0.1)
-        return [t for t, n in self.counts.items() if n < 3]
+
+    def stop_counting(self) -> None:
+        """Drop the counting subscriptions (once the topics flow they only cost CPU: ~400
+        messages/s through this process)."""
+        for sub in self._subs.values():
+            self.node.destroy_subscription(sub)
+        self._subs = {}
+        self.counts = {}
 
     def trigger(self, service: str, timeout_s: float = 5.0) -> tuple[bool, str]:
         from std_srvs.srv import Trigger
@@ -316,6 +326,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
     hardware = bool(args.hardware)
     if hardware and not (args.mavlink and args.pixy_port):
         return fail('--hardware needs --mavlink URL and --pixy-port DEV')
+    use_px4 = getattr(args, 'autopilot', 'emulator') == 'px4-sitl'
+    if use_px4 and (hardware or args.mavlink):
+        return fail('--autopilot px4-sitl is a simulation (no --hardware, no --mavlink)')
     if not hardware and any(getattr(args, k, None) is not None
                             for k in ('mass_kg', 'hover_thrust_norm', 'thrust_expo')):
         return fail('--mass-kg, --hover-thrust-norm and --thrust-expo are for --hardware '
@@ -330,6 +343,14 @@ def _cmd_up(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         return fail(str(exc))
     nodes = graph['nodes']
+    px4 = None
+    if use_px4:
+        from deckland.sitl.mission import Px4Mission, operator_take_off
+        from deckland.sitl.px4 import Px4NotFoundError
+        try:
+            px4 = Px4Mission(scenario, keep_ulog=args.keep_ulog)
+        except (Px4NotFoundError, ValueError) as exc:
+            return fail(str(exc))
     names = {n.name for n in nodes}
     kills = node_kill_faults(scenario)
     for f in kills:
@@ -353,8 +374,15 @@ def _cmd_up(args: argparse.Namespace) -> int:
     result_code = 1
     report: dict[str, Any] = {}
     t_trigger: float | None = None
+    t_outcome: float | None = None
     injected: list[dict[str, Any]] = []
     try:
+        if px4 is not None:
+            problem = _start_px4(px4, nodes, orch)
+            if problem:
+                report = {'success': False, 'reason': f'start-up failed: {problem}'}
+                result_code = 3
+                raise _EndRunError
         orch.start()
         expect = {} if scenario is None else {'scenario': scenario.name, 'seed': args.seed}
         monitor = MissionMonitor(graph.get('wait_for_topics', []), expect=expect)
@@ -364,7 +392,18 @@ def _cmd_up(args: argparse.Namespace) -> int:
             return stop_requested.is_set() or any(
                 e.action in ('not respawned', 'gave up') for e in orch.exits)
 
-        silent = monitor.wait_flowing(args.startup_timeout, abort=startup_abort)
+        if px4 is not None:
+            ok, msg = px4.wait_up(args.startup_timeout, abort=startup_abort)
+            if not ok:
+                report = {'success': False, 'reason': f'start-up failed: {msg}'}
+                result_code = 3
+                orch.log(report['reason'])
+                raise _EndRunError
+            orch.log(f'PX4 up after {px4.times["up_s"]:.1f} s')
+        # on the ground the planner disables the thrust: the command topics flow once in
+        # the air (PX4's take-off, below)
+        silent = monitor.wait_flowing(args.startup_timeout, abort=startup_abort,
+                                      skip=() if px4 is None else px4.GROUND_SILENT)
         if stop_requested.is_set():
             raise _EndRunError
         if silent or orch.crashed:
@@ -374,13 +413,34 @@ def _cmd_up(args: argparse.Namespace) -> int:
             report = {'success': False, 'reason': 'start-up failed', 'silent_topics': silent}
             result_code = 3
             raise _EndRunError
+        wait_topics = graph.get('wait_for_topics', [])
+        if px4 is not None:   # the bag covers PX4's take-off
+            if record is not None:
+                recorder = _start_recorder(record, monitor, [
+                    t for t in wait_topics if t not in px4.GROUND_SILENT], orch)
+            ok, msg = operator_take_off(px4, monitor, orch.log, stop_requested.is_set)
+            if ok:
+                silent = monitor.wait_flowing(10.0, abort=startup_abort)
+                ok, msg = not silent, f'silent topics in the air {silent}'
+            if not ok:
+                report = {'success': False, 'reason': f'start-up failed: {msg}'}
+                result_code = 3
+                orch.log(report['reason'])
+                raise _EndRunError
         orch.log('all topics flowing')
-        if record is not None:
-            recorder = _start_recorder(record, monitor, graph.get('wait_for_topics', []), orch)
+        monitor.stop_counting()
+        if record is not None and recorder is None:
+            recorder = _start_recorder(record, monitor, wait_topics, orch)
         if stop_requested.is_set():
             raise _EndRunError
         ok, msg = monitor.trigger('bridge/offboard')
         orch.log(f'offboard: {ok} {msg}')
+        if px4 is not None and not px4.wait_mode('OFFBOARD', 5.0, stop_requested.is_set):
+            report = {'success': False, 'reason': f'PX4 did not enter OFFBOARD ({msg}; mode '
+                      f'{px4.operator.mode})'}
+            result_code = 4
+            orch.log(report['reason'])
+            raise _EndRunError
         ok, msg = monitor.trigger('planner/start_landing')
         t_trigger = time.monotonic()
         orch.log(f'start_landing: {ok} {msg}')
@@ -412,6 +472,11 @@ def _cmd_up(args: argparse.Namespace) -> int:
         if stop_requested.is_set():
             raise _EndRunError
         if monitor.outcome is not None:
+            t_outcome = time.monotonic()
+            if px4 is not None:   # PX4's land detector disarms it (or its failsafe lands)
+                disarmed = px4.wait_disarmed(PX4_DISARM_WAIT_S, stop_requested.is_set)
+                orch.log(f'PX4 {"disarmed" if disarmed else "still armed"} '
+                         f'{time.monotonic() - t_outcome:.1f} s after the touchdown')
             report = dict(monitor.outcome)
             result_code = 0 if report.get('success') else 1
             orch.log(f'outcome: {json.dumps(report)}')
@@ -435,6 +500,12 @@ def _cmd_up(args: argparse.Namespace) -> int:
         took = orch.stop()
         orch.check()
         orch.log(f'stopped all nodes in {took:.2f} s')
+        px4_report = None
+        if px4 is not None:
+            px4_report = px4.report(t_trigger)
+            px4.stop()
+            orch.log('PX4 stopped, its working directory removed'
+                     + (f'; ULog kept in {args.keep_ulog}' if args.keep_ulog else ''))
         if recorder is not None:
             with contextlib.suppress(Exception):
                 recorder.stop()
@@ -445,14 +516,26 @@ def _cmd_up(args: argparse.Namespace) -> int:
             monitor.close()
         else:
             modes = []
+        if px4_report is not None:
+            # PX4's own modes (the operator's view: the bridge may be the node killed) up to
+            # the touchdown; after it the land detector or the offboard loss may switch
+            modes = [{'t_s': m['t_s'], 'mode': m['mode']} for m in px4_report['modes']
+                     if t_outcome is None or t_trigger is None
+                     or m['t_s'] <= t_outcome - t_trigger]
         for s, h in old.items():
             signal.signal(s, h)
         report = _finish_report(report, args, hardware, orch, injected, modes, record,
                                 result_code)
+        if px4_report is not None:
+            report['autopilot'] = 'px4-sitl'
+            report['px4'] = px4_report
         if record is not None:
             with contextlib.suppress(OSError):
                 record.mkdir(parents=True, exist_ok=True)
                 (record / 'report.json').write_text(json.dumps(report, indent=2) + '\n')
+        if getattr(args, 'report', None):
+            with contextlib.suppress(OSError):
+                pathlib.Path(args.report).write_text(json.dumps(report, indent=2) + '\n')
         print('\n'.join(summary_lines(report, result_code, str(record) if record else None)),
               flush=True)
     return result_code
@@ -460,6 +543,26 @@ def _cmd_up(args: argparse.Namespace) -> int:
 
 class _EndRunError(Exception):
     """Leave the mission early (start-up failure, refused trigger, SIGINT/SIGTERM)."""
+
+
+#: after the touchdown, how long PX4 gets to disarm (land detector: COM_DISARM_LAND 2 s)
+PX4_DISARM_WAIT_S = 20.0
+
+
+def _start_px4(px4, nodes, orch: Orchestrator) -> str:
+    """PX4 SITL in a fresh directory, the graph pointed at its instance's ports; '' or why
+    PX4 could not be started."""
+    from deckland.sitl.px4 import Px4StartError
+    try:
+        px4.start()
+    except (Px4StartError, OSError) as exc:
+        orch.log(f'PX4 did not start: {exc}')
+        return f'PX4 did not start: {exc}'
+    px4.configure_graph(nodes)
+    orch.log(f'PX4 SITL {px4.px4.root} instance {px4.px4.instance} in {px4.px4.workdir} '
+             f"(simulator TCP {px4.ports['simulator_tcp']}, onboard UDP "
+             f"{px4.ports['onboard_remote']}, GCS UDP {px4.ports['gcs_local']})")
+    return ''
 
 
 def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: list[str],
@@ -537,4 +640,12 @@ def register(sub) -> None:
     p.add_argument('--record', help='record a bag (and report.json) into this directory')
     p.add_argument('--timeout', type=float, default=120.0, help='mission timeout [s]')
     p.add_argument('--startup-timeout', type=float, default=40.0)
+    p.add_argument('--autopilot', choices=('emulator', 'px4-sitl'), default='emulator',
+                   help='what flies the simulated vehicle: the emulated PX4 (default) or PX4 '
+                   'SITL from $DECKLAND_PX4_SITL / ../shared/px4-sitl (PX4 v1.16)')
+    p.add_argument('--report', metavar='FILE',
+                   help='write report.json here too (no bag needed; deckland campaign '
+                   '--autopilot px4-sitl reads it)')
+    p.add_argument('--keep-ulog', metavar='DIR',
+                   help="px4-sitl: keep PX4's ULog and its log in DIR (default: not logged)")
     p.set_defaults(func=_cmd_up)

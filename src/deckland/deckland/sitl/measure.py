@@ -146,7 +146,7 @@ def hil(seconds: float) -> dict:
 
             def lockstep() -> None:
                 while not stop.is_set():
-                    sim.step(sim.period_s)
+                    world.step(sim.period_s)    # the world ticks PX4 (its autopilot)
 
             th = threading.Thread(target=lockstep, daemon=True)
             w0, s0 = time.monotonic(), world.t_s

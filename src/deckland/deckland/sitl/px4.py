@@ -49,6 +49,21 @@ class Px4StartError(RuntimeError):
     """PX4 did not come up (the message carries the end of its log)."""
 
 
+#: a float parameter set to exactly 0.0 is sent as this: PX4 stores only values that differ
+#: from the compiled default, so a 0.0 equal to it is not kept and the airframe's later
+#: ``param set-default`` wins (measured: none_iris kept its CA_ROTOR1_PX = -0.1515 for a
+#: requested 0.0; PX4's own rcS sets SENS_BOARD_X_OFF 0.000001 for the same reason)
+ZERO_FLOAT = 1e-6
+
+
+def px4_param_text(value: float | int) -> str:
+    """A parameter value as ``PX4_PARAM_*`` text (floats with a '.', 0.0 as
+    :data:`ZERO_FLOAT`)."""
+    if isinstance(value, float):
+        return repr(ZERO_FLOAT if value == 0.0 else value)
+    return str(int(value))
+
+
 def find_px4(env: dict[str, str] | None = None) -> pathlib.Path | None:
     """The PX4 SITL folder (with ``bin/px4`` and ``etc/init.d-posix/rcS``), or None.
 
@@ -232,7 +247,7 @@ class Px4Sitl:
         if not self.logging:
             params.setdefault('SDLOG_MODE', -1)
         for k, v in params.items():
-            env[f'PX4_PARAM_{k}'] = repr(float(v)) if isinstance(v, float) else str(v)
+            env[f'PX4_PARAM_{k}'] = px4_param_text(v)
         env.update(self.extra_env)
         cmd = [str(bindir / 'px4'), '-d', '-i', str(self.instance), str(self.root / 'etc')]
         if self.nice:
