@@ -279,6 +279,23 @@ def test_landed_disarm_commands_land_and_is_retried_while_arducopter_refuses():
     assert core._arm is None and core.last_result == 'disarmed'
 
 
+def test_landed_flicker_during_arducopters_own_take_off_is_not_landed_by_the_bridge():
+    """An operator's GUIDED take-off (deckland up --autopilot ardupilot-sitl): the planner's
+    control/enabled follows the landed state, which flickers at lift-off (measured: True,
+    False, True within 0.2 s). Not in GUIDED_NOGPS the vehicle is not ours: no LAND (the
+    first mission on deckland's physics was landed at 1.08 m/s by it), no disarm."""
+    ap = ArduPilot(mode=GUIDED, base=ARMED)
+    core = ap.core
+    ap.run(1.0, stream=False)
+    for enabled in (True, False, True, False):
+        core.on_enabled(ap.t, enabled)
+    sent = []
+    ap.run(3.0, stream=False, on_out=lambda got: sent.extend(
+        o.command for o in got if o.kind == 'command'))
+    assert MAV_CMD_DO_SET_MODE not in sent and MAV_CMD_COMPONENT_ARM_DISARM not in sent
+    assert core._stop is None and core._arm is None
+
+
 # --- 8. STATUSTEXT, mode table, range below RNGFND1_MIN_CM -----------------------------------
 
 def test_statustext_is_kept_joined_and_repeats_are_not_logged_again():
@@ -405,3 +422,24 @@ def test_tcp_link_loss_no_busy_loop_no_log_storm_and_reconnect(ros_context, capf
         assert up()
     finally:
         ap2.close()
+
+
+def test_map_anchor_puts_arducopters_gps_origin_where_it_lies_in_map():
+    """ArduCopter's local origin is its first GPS fix (SET_GPS_GLOBAL_ORIGIN refused while
+    EKF3 uses GPS, measured: "EKF3 refusing set origin"): with the map's geodetic anchor the
+    bridge shifts LOCAL_POSITION_NED by the origin's place in map. 1e-5 deg of latitude is
+    1.1132 m north; of longitude at 35.36 deg S, 1.1132 cos(35.36 deg) = 0.9077 m east."""
+    from mavlink_bridge.conversions import origin_offset_enu, parse_llh
+    anchor = parse_llh('-35.363261,149.165230,0')
+    e, n, u = origin_offset_enu((-353632610 + 100, 1491652300 + 100, 150), anchor)
+    assert n == pytest.approx(1.1132, abs=1e-4)
+    assert e == pytest.approx(1.1132 * math.cos(math.radians(35.363251)), abs=1e-4)
+    assert u == pytest.approx(0.15)
+    # measured on deckland's physics: the vehicle resting at (-2.8, -0.3) m, origin set 20 s
+    # after EKF3 started (its position drifted ~0.4 m in the mean time)
+    e, n, u = origin_offset_enu((-353632615, 1491651949, 150), anchor)
+    assert (e, n) == pytest.approx((-3.187, -0.056), abs=1e-3)
+    assert parse_llh('') is None
+    for bad in ('1,2', 'a,b,c', '95,0,0', '0,0,nan'):
+        with pytest.raises(ValueError):
+            parse_llh(bad)

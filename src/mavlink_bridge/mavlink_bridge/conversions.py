@@ -348,6 +348,33 @@ def range_m_to_distance_cm(range_m: float | None, max_distance_cm: int) -> int:
     return min(round(range_m * 100.0), max_distance_cm + 1, 65535)
 
 
+#: metres per 1e-7 degree of latitude (ArduPilot's LOCATION_SCALING_FACTOR, flat earth)
+LOCATION_SCALING_M = 0.011131884502145034
+
+
+def parse_llh(text: str) -> tuple[float, float, float] | None:
+    """``'lat_deg,lon_deg,alt_m'`` → the tuple; '' → None; anything else: ValueError."""
+    if not text.strip():
+        return None
+    parts = [float(v) for v in text.split(',')]
+    if len(parts) != 3 or not all(map(math.isfinite, parts)) or not -90.0 < parts[0] < 90.0 \
+            or not -180.0 <= parts[1] <= 180.0:
+        raise ValueError(f'{text!r} is not "lat_deg,lon_deg,alt_m"')
+    return parts[0], parts[1], parts[2]
+
+
+def origin_offset_enu(origin_e7: tuple[int, int, int],
+                      anchor: tuple[float, float, float]) -> tuple[float, float, float]:
+    """Where the autopilot's local-frame origin (GPS_GLOBAL_ORIGIN: lat/lon 1e-7 deg, alt mm)
+    lies in a map anchored at ``anchor`` (lat_deg, lon_deg, alt_m), ENU metres, with the flat
+    earth ArduPilot's EKF uses for its local frame."""
+    lat, lon, alt = anchor
+    dn = (origin_e7[0] - round(lat * 1e7)) * LOCATION_SCALING_M
+    de = (origin_e7[1] - round(lon * 1e7)) * LOCATION_SCALING_M * \
+        math.cos(math.radians(origin_e7[0] * 1e-7))
+    return de, dn, origin_e7[2] * 1e-3 - alt
+
+
 def local_position_ned_to_enu(x: float, y: float, z: float, vx: float, vy: float,
                               vz: float) -> tuple[Vec3, Vec3]:
     """LOCAL_POSITION_NED → (position ENU, velocity ENU)."""

@@ -737,12 +737,17 @@ class BridgeCore:
         ArduPilot the bridge also commands LAND: ArduCopter refuses the disarm until its land
         detector confirms the landing, which it does in LAND (~1.5 s after touchdown,
         measured) but never in GUIDED_NOGPS on thrust (20 s of FAILED, measured); LAND then
-        disarms by itself, the disarm request is retried meanwhile."""
+        disarms by itself, the disarm request is retried meanwhile. Only while ArduCopter flies
+        our setpoints (GUIDED_NOGPS): in its own modes it is the operator's."""
         if self.enabled and not enabled:
             self._offboard = None
-            if self.armed:
+            ardupilot = self.params.autopilot == 'ardupilot'
+            if self.armed and ardupilot and not self.in_offboard():
+                pass   # ArduCopter flies its own mode (an operator's GUIDED take-off, whose
+                #        lift-off flickers the landed state): not ours to land or disarm
+            elif self.armed:
                 self._arm = _Request(t_s, False)
-                if self.params.autopilot == 'ardupilot' and self.mode != 'LAND':
+                if ardupilot and self.mode != 'LAND':
                     self._start_stop(t_s, 'LAND', 'control/enabled False (landed)')
         self.enabled = bool(enabled)
 

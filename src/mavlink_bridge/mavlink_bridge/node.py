@@ -54,6 +54,8 @@ from mavlink_bridge.conversions import (
     landing_target_ardupilot,
     landing_target_px4,
     local_position_ned_to_enu,
+    origin_offset_enu,
+    parse_llh,
     scaled_imu_to_flu,
 )
 from mavlink_bridge.core import ARDUPILOT_STOP_MODES, BridgeCore, BridgeParams, LinkMonitorParams
@@ -67,6 +69,14 @@ _VEHICLE = VehicleDescription()
 
 def _actions(value: str) -> tuple[str, ...]:
     return tuple(a.strip().lower() for a in str(value).split(',') if a.strip())
+
+
+def _valid_llh(value: str) -> bool:
+    try:
+        parse_llh(value)
+    except ValueError:
+        return False
+    return True
 
 
 PARAMS = [
@@ -133,6 +143,11 @@ PARAMS = [
     ParamSpec('landing_target_output', False,
               'send LANDING_TARGET from apron/odom (PX4: LOCAL_NED position, ArduPilot: body)'),
     ParamSpec('map_frame', 'map', 'world frame id (ENU)'),
+    ParamSpec('map_origin_llh', '', "'lat_deg,lon_deg,alt_m' of map's origin: positions are "
+              "shifted by where the autopilot's local origin (GPS_GLOBAL_ORIGIN, requested) lies "
+              "in map, and vehicle/odom waits for it (ArduCopter puts its origin at its first "
+              "GPS fix and refuses SET_GPS_GLOBAL_ORIGIN while it uses GPS); empty = map is the "
+              "autopilot's local frame", _valid_llh, "must be empty or 'lat,lon,alt'"),
     ParamSpec('base_frame', 'base_link', 'body frame id (FLU)'),
     ParamSpec('lidar_frame', 'lidar_link', 'frame id of vehicle/range'),
     positive('range_field_of_view_rad', 0.008, 'Range.field_of_view (LidarLite v3 beam)'),
@@ -207,6 +222,11 @@ class MavlinkBridgeNode(Node):
         # latest telemetry (ENU/FLU)
         self._att = None          # ((roll, pitch, yaw), rates)
         self._pos = None          # (position, velocity)
+        self._anchor = parse_llh(cfg['map_origin_llh'])
+        #: the autopilot's local origin in map (ENU), from GPS_GLOBAL_ORIGIN; None = unknown
+        self._origin_enu: tuple[float, float, float] | None = (
+            None if self._anchor is not None else (0.0, 0.0, 0.0))
+        self._origin_asked_s = -math.inf
         self._published_state: dict[str, object] = {}
 
         self.pub_odom = self.create_publisher(Odometry, 'vehicle/odom', RELIABLE_QOS)
@@ -349,10 +369,23 @@ class MavlinkBridgeNode(Node):
         elif kind == 'LOCAL_POSITION_NED':
             vals = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
             if all(map(math.isfinite, vals)):
-                self._pos = local_position_ned_to_enu(*vals)
+                (x, y, z), vel = local_position_ned_to_enu(*vals)
+                o = self._origin_enu
+                if o is None:
+                    self._count_rejected('no_origin')    # map anchored, origin not known yet
+                    return
+                self._pos = ((x + o[0], y + o[1], z + o[2]), vel)
                 self._publish_odom()
             else:
                 self._count_rejected('nan')
+        elif kind == 'GPS_GLOBAL_ORIGIN':
+            if self._anchor is not None:
+                o = origin_offset_enu((msg.latitude, msg.longitude, msg.altitude), self._anchor)
+                if o != self._origin_enu:
+                    self.get_logger().info(
+                        f"autopilot's local origin at ({o[0]:.3f}, {o[1]:.3f}, {o[2]:.3f}) m "
+                        'in map')
+                self._origin_enu = o
         elif kind == 'HIGHRES_IMU':
             if self.core.imu_msg != kind:
                 return            # (only one IMU stream is published)
@@ -537,6 +570,12 @@ class MavlinkBridgeNode(Node):
                                o.param_id.encode('ascii'), -1)
                 elif o.kind == 'timesync':
                     self._send(self.conn.mav.timesync_send, 0, round(o.params[0] * 1e9))
+            now = self._now()
+            if self._anchor is not None and self._origin_enu is None and \
+                    now - self._origin_asked_s > 2.0 and self.core.link_up(now):
+                self._origin_asked_s = now       # MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN
+                self._send(self.conn.mav.command_long_send, ts, tc, 512, 0, 49, 0, 0, 0, 0,
+                           0, 0)
             mon = self.core.link_monitor
             degraded, reason = mon.degraded, mon.reason
             result = self.core.last_result
