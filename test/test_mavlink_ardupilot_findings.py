@@ -296,6 +296,25 @@ def test_landed_flicker_during_arducopters_own_take_off_is_not_landed_by_the_bri
     assert core._stop is None and core._arm is None
 
 
+def test_no_setpoints_reach_arducopter_in_its_own_guided():
+    """ArduCopter's GUIDED flies a SET_ATTITUDE_TARGET as an angle command (it overrides its
+    own take-off: on deckland's physics the stack's thrust in GUIDED hopped the vehicle and
+    touched down at 1.14 m/s). The bridge streams only in GUIDED_NOGPS or while it asks for
+    it; PX4 ignores setpoints outside OFFBOARD, so it streams there as before."""
+    ap = ArduPilot(mode=GUIDED, base=ARMED)
+    core = ap.core
+    core.on_enabled(ap.t, True)
+    ap.run(1.0)
+    assert core.counters['setpoints_sent'] == 0 and core.counters['not_guided_nogps'] >= 90
+    assert core.request_offboard(ap.t)[0]                   # bridge/offboard: the entry
+    ap.run(0.5)
+    sent = core.counters['setpoints_sent']
+    assert sent >= 45
+    ap.heartbeat(GUIDED_NOGPS)
+    ap.run(0.5)
+    assert core.counters['setpoints_sent'] >= sent + 45
+
+
 # --- 8. STATUSTEXT, mode table, range below RNGFND1_MIN_CM -----------------------------------
 
 def test_statustext_is_kept_joined_and_repeats_are_not_logged_again():

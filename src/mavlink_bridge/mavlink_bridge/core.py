@@ -451,6 +451,7 @@ class BridgeCore:
                                          'other_system': 0, 'bad_data': 0}
         self.counters: dict[str, int] = {'setpoints_sent': 0, 'rate_limited': 0,
                                          'stale_attitude': 0, 'disabled': 0, 'no_link': 0,
+                                         'not_guided_nogps': 0,
                                          'heartbeats_rx': 0, 'commands_sent': 0,
                                          'link_degraded': 0, 'trim_requests': 0,
                                          'disarm_deferred': 0, 'disarm_refused': 0,
@@ -810,6 +811,13 @@ class BridgeCore:
             return None
         if not self.link_up(t_s):
             self.counters['no_link'] += 1
+            return None
+        if p.autopilot == 'ardupilot' and self.mode != p.offboard_mode and \
+                self._offboard is None:
+            # ArduCopter's GUIDED (and its other modes that take attitude targets) would fly
+            # a SET_ATTITUDE_TARGET as an angle command, overriding its own position control
+            # (an operator's take-off): only GUIDED_NOGPS, or its entry sequence, is ours
+            self.counters['not_guided_nogps'] += 1
             return None
         if self.link_monitor.degraded:
             # the link is too slow to close the loops over: stop streaming, so that the
