@@ -236,7 +236,7 @@ def write_plots(per_controller: dict[str, list[RunResult]], out_dir: pathlib.Pat
 
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
-    if args.autopilot == 'px4-sitl':   # the graph through PX4 SITL, one mission at a time
+    if args.autopilot in ('px4-sitl', 'ardupilot-sitl'):   # the graph through SITL, in turn
         from deckland.sitl.campaign import cmd_sitl_campaign
         return cmd_sitl_campaign(args)
     controllers = list(CONTROLLERS) if args.compare else [args.controller]

@@ -12,7 +12,8 @@ receives them (so the bag covers the mission from the trigger on), request OFFBO
 so), ``node_kill`` faults of the scenario are injected (SIGKILL at ``start_s`` after the
 trigger), until the outcome, the timeout or SIGINT/SIGTERM. Then every child is stopped
 (within 5 s), the bag is finished, ``report.json`` is written and a summary is printed.
-``--autopilot px4-sitl``: PX4 SITL flies the simulated vehicle (:mod:`deckland.sitl.mission`:
+``--autopilot px4-sitl`` / ``ardupilot-sitl``: the firmware flies the simulated vehicle
+(:mod:`deckland.sitl.mission` / :mod:`deckland.sitl.ardupilot`:
 started first, an operator's take-off before OFFBOARD, disarm awaited, killed at the end).
 Exit codes: see :data:`EXIT_CODES` and ``src/deckland/README-up.md``.
 """
@@ -326,9 +327,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
     hardware = bool(args.hardware)
     if hardware and not (args.mavlink and args.pixy_port):
         return fail('--hardware needs --mavlink URL and --pixy-port DEV')
-    use_px4 = getattr(args, 'autopilot', 'emulator') == 'px4-sitl'
+    firmware = getattr(args, 'autopilot', 'emulator')
+    use_px4 = firmware in ('px4-sitl', 'ardupilot-sitl')
     if use_px4 and (hardware or args.mavlink):
-        return fail('--autopilot px4-sitl is a simulation (no --hardware, no --mavlink)')
+        return fail(f'--autopilot {firmware} is a simulation (no --hardware, no --mavlink)')
     if not hardware and any(getattr(args, k, None) is not None
                             for k in ('mass_kg', 'hover_thrust_norm', 'thrust_expo')):
         return fail('--mass-kg, --hover-thrust-norm and --thrust-expo are for --hardware '
@@ -345,11 +347,13 @@ def _cmd_up(args: argparse.Namespace) -> int:
     nodes = graph['nodes']
     px4 = None
     if use_px4:
+        from deckland.sitl.ardupilot import ArduPilotMission, ArduPilotNotFoundError
         from deckland.sitl.mission import Px4Mission, operator_take_off
         from deckland.sitl.px4 import Px4NotFoundError
         try:
-            px4 = Px4Mission(scenario, keep_ulog=args.keep_ulog)
-        except (Px4NotFoundError, ValueError) as exc:
+            px4 = (ArduPilotMission if firmware == 'ardupilot-sitl' else Px4Mission)(
+                scenario, keep_ulog=args.keep_ulog)
+        except (Px4NotFoundError, ArduPilotNotFoundError, ValueError) as exc:
             return fail(str(exc))
     names = {n.name for n in nodes}
     kills = node_kill_faults(scenario)
@@ -399,7 +403,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
                 result_code = 3
                 orch.log(report['reason'])
                 raise _EndRunError
-            orch.log(f'PX4 up after {px4.times["up_s"]:.1f} s')
+            orch.log(f'{px4.NAME} up after {px4.times["up_s"]:.1f} s')
         # on the ground the planner disables the thrust: the command topics flow once in
         # the air (PX4's take-off, below)
         silent = monitor.wait_flowing(args.startup_timeout, abort=startup_abort,
@@ -435,9 +439,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
             raise _EndRunError
         ok, msg = monitor.trigger('bridge/offboard')
         orch.log(f'offboard: {ok} {msg}')
-        if px4 is not None and not px4.wait_mode('OFFBOARD', 5.0, stop_requested.is_set):
-            report = {'success': False, 'reason': f'PX4 did not enter OFFBOARD ({msg}; mode '
-                      f'{px4.operator.mode})'}
+        if px4 is not None and not px4.wait_mode(px4.OFFBOARD_MODE, 5.0,
+                                                 stop_requested.is_set):
+            report = {'success': False, 'reason': f'{px4.NAME} did not enter '
+                      f'{px4.OFFBOARD_MODE} ({msg}; mode {px4.operator.mode})'}
             result_code = 4
             orch.log(report['reason'])
             raise _EndRunError
@@ -475,7 +480,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
             t_outcome = time.monotonic()
             if px4 is not None:   # PX4's land detector disarms it (or its failsafe lands)
                 disarmed = px4.wait_disarmed(PX4_DISARM_WAIT_S, stop_requested.is_set)
-                orch.log(f'PX4 {"disarmed" if disarmed else "still armed"} '
+                orch.log(f'{px4.NAME} {"disarmed" if disarmed else "still armed"} '
                          f'{time.monotonic() - t_outcome:.1f} s after the touchdown')
             report = dict(monitor.outcome)
             result_code = 0 if report.get('success') else 1
@@ -504,7 +509,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
         if px4 is not None:
             px4_report = px4.report(t_trigger)
             px4.stop()
-            orch.log('PX4 stopped, its working directory removed'
+            orch.log(f'{px4.NAME} stopped, its working directory removed'
                      + (f'; ULog kept in {args.keep_ulog}' if args.keep_ulog else ''))
         if recorder is not None:
             with contextlib.suppress(Exception):
@@ -527,8 +532,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         report = _finish_report(report, args, hardware, orch, injected, modes, record,
                                 result_code)
         if px4_report is not None:
-            report['autopilot'] = 'px4-sitl'
-            report['px4'] = px4_report
+            report['autopilot'] = firmware
+            report['px4' if firmware == 'px4-sitl' else 'ardupilot'] = px4_report
         if record is not None:
             with contextlib.suppress(OSError):
                 record.mkdir(parents=True, exist_ok=True)
@@ -552,16 +557,15 @@ PX4_DISARM_WAIT_S = 20.0
 def _start_px4(px4, nodes, orch: Orchestrator) -> str:
     """PX4 SITL in a fresh directory, the graph pointed at its instance's ports; '' or why
     PX4 could not be started."""
+    from deckland.sitl.ardupilot import ArduPilotStartError
     from deckland.sitl.px4 import Px4StartError
     try:
         px4.start()
-    except (Px4StartError, OSError) as exc:
-        orch.log(f'PX4 did not start: {exc}')
-        return f'PX4 did not start: {exc}'
+    except (Px4StartError, ArduPilotStartError, OSError) as exc:
+        orch.log(f'{px4.NAME} did not start: {exc}')
+        return f'{px4.NAME} did not start: {exc}'
     px4.configure_graph(nodes)
-    orch.log(f'PX4 SITL {px4.px4.root} instance {px4.px4.instance} in {px4.px4.workdir} '
-             f"(simulator TCP {px4.ports['simulator_tcp']}, onboard UDP "
-             f"{px4.ports['onboard_remote']}, GCS UDP {px4.ports['gcs_local']})")
+    orch.log(px4.describe())
     return ''
 
 
@@ -640,9 +644,12 @@ def register(sub) -> None:
     p.add_argument('--record', help='record a bag (and report.json) into this directory')
     p.add_argument('--timeout', type=float, default=120.0, help='mission timeout [s]')
     p.add_argument('--startup-timeout', type=float, default=40.0)
-    p.add_argument('--autopilot', choices=('emulator', 'px4-sitl'), default='emulator',
-                   help='what flies the simulated vehicle: the emulated PX4 (default) or PX4 '
-                   'SITL from $DECKLAND_PX4_SITL / ../shared/px4-sitl (PX4 v1.16)')
+    p.add_argument('--autopilot', choices=('emulator', 'px4-sitl', 'ardupilot-sitl'),
+                   default='emulator',
+                   help='what flies the simulated vehicle: the emulated PX4 (default), PX4 '
+                   'SITL from $DECKLAND_PX4_SITL / ../shared/px4-sitl (PX4 v1.16) or '
+                   'ArduCopter SITL from $DECKLAND_ARDUPILOT_SITL / ../shared/ardupilot-sitl '
+                   '(4.5.6, on deckland physics)')
     p.add_argument('--report', metavar='FILE',
                    help='write report.json here too (no bag needed; deckland campaign '
                    '--autopilot px4-sitl reads it)')

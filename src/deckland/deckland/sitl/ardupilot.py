@@ -21,9 +21,12 @@ import signal
 import socket
 import subprocess
 import tempfile
+import threading
 import time
 import weakref
 
+from deckland.sitl.mission import Px4Mission as _Px4MissionBase
+from deckland.sitl.mission import _wait
 from deckland.sitl.px4 import _cleanup, _udp_free
 
 #: ArduPilot SITL ports add 10 per instance (``-I``); 0-9 are used here
@@ -340,3 +343,351 @@ class ArduPilotSitl:
                     shutil.copy2(self.log_path, dest / 'arducopter.log')
             shutil.rmtree(self.workdir, ignore_errors=True)
             self.workdir = None
+
+
+# --- deckland up --autopilot ardupilot-sitl -------------------------------------------------
+
+#: the JSON physics rate = the world's physics rate (one servo frame per sub-step): 400 Hz,
+#: ArduCopter's main-loop rate (measured: 2.5-9.9x real time unpaced, vs 2.0-4.3x at 1200 Hz)
+JSON_RATE_HZ = 400
+#: the bridge on a shared 2-core machine: ArduCopter's TIMESYNC answers and the graph's 100 Hz
+#: setpoints arrive late under load (the SITL tests' margins; the 60 ms / 0.3 s of the deck
+#: set-up are for the real link)
+BRIDGE_SITL_PARAMS = {'max_link_latency_s': 0.25, 'stop_after_s': 0.8}
+MAV_CMD_COMPONENT_ARM_DISARM = 400
+MAV_CMD_NAV_TAKEOFF = 22
+MAV_CMD_DO_SET_MODE = 176
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+GUIDED = 4
+
+
+def mission_params(scenario) -> dict[str, float]:
+    """ArduCopter's parameters for a mission of ``scenario`` (besides :data:`MISSION_PARAMS`):
+    the vehicle and lidar as the JSON physics flies them
+    (:func:`deck_simulator.ardupilot_json.ardupilot_params`) at :data:`JSON_RATE_HZ`."""
+    from deck_simulator.ardupilot_json import ardupilot_params
+    lp = scenario.sensors.lidar
+    p = ardupilot_params(scenario.vehicle, lp.min_range_m, lp.max_range_m)
+    p['SIM_RATE_HZ'] = JSON_RATE_HZ
+    return p
+
+
+class ArduPilotOperator:
+    """A ground station on ArduCopter's SERIAL1 (TCP 5762 + 10 × instance), as the PX4
+    mission's :class:`~deckland.sitl.mission.Operator`: :attr:`armed`, :attr:`mode`,
+    :attr:`landed_state`, :attr:`local_ned`, :attr:`origin`, :attr:`modes` (monotonic time,
+    ArduCopter mode name, armed) on every change, :attr:`texts`, :attr:`acks`,
+    :attr:`params`. Its system id (255) is not ``SYSID_MYGCS``: the GCS failsafe watches the
+    bridge, not this link."""
+
+    def __init__(self, port: int, system_id: int = 1) -> None:
+        from pymavlink.dialects.v20 import common as mavlink
+        self._mavlink = mavlink
+        self.port = port
+        self.target = system_id
+        self.sock: socket.socket | None = None
+        self.mav = mavlink.MAVLink(self, srcSystem=255, srcComponent=190)
+        self.rx = mavlink.MAVLink(None)
+        self.rx.robust_parsing = True
+        self.heartbeats = 0
+        self.armed = False
+        self.mode = ''
+        self.landed_state = 0
+        self.local_ned: tuple[float, float, float] | None = None
+        self.origin: tuple[int, int, int] | None = None
+        self.modes: list[tuple[float, str, bool]] = []
+        self.texts: list[tuple[float, str]] = []
+        self.acks: list[tuple[float, int, int]] = []
+        self.params: dict[str, float] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='ardupilot_operator',
+                                        daemon=True)
+        self._thread.start()
+
+    def write(self, data: bytes) -> None:      # pymavlink's file
+        with self._lock:
+            if self.sock is not None:
+                with contextlib.suppress(OSError):
+                    self.sock.sendall(data)
+
+    def _connect(self) -> bool:
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.settimeout(0.5)
+        try:
+            s.connect(('127.0.0.1', self.port))
+        except OSError:
+            s.close()
+            return False
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        s.settimeout(0.05)
+        with self._lock:
+            self.sock = s
+        return True
+
+    def _run(self) -> None:
+        mavlink = self._mavlink
+        next_hb = 0.0
+        while not self._stop.is_set():
+            if self.sock is None and not self._connect():
+                self._stop.wait(0.5)
+                continue
+            now = time.monotonic()
+            if now >= next_hb:
+                next_hb = now + 1.0
+                self.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                        0, 0, mavlink.MAV_STATE_ACTIVE)
+            try:
+                data = self.sock.recv(65536)
+            except (TimeoutError, BlockingIOError):
+                continue
+            except OSError:
+                data = b''
+            if not data:          # ArduCopter gone: try again later
+                with self._lock:
+                    with contextlib.suppress(OSError):
+                        self.sock.close()
+                    self.sock = None
+                continue
+            try:
+                msgs = self.rx.parse_buffer(data) or []
+            except Exception:
+                continue
+            for m in msgs:
+                self._on_message(time.monotonic(), m)
+
+    def _on_message(self, now: float, m) -> None:
+        from mavlink_bridge.conversions import MAV_MODE_FLAG_SAFETY_ARMED, ardupilot_mode_name
+        mavlink = self._mavlink
+        kind = m.get_type()
+        if kind == 'HEARTBEAT' and m.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
+            if self.heartbeats == 0:
+                self.stream(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 5.0)
+                self.stream(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 10.0)
+            self.heartbeats += 1
+            armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+            mode = ardupilot_mode_name(m.custom_mode)
+            if mode != self.mode or armed != self.armed or not self.modes:
+                self.modes.append((now, mode, armed))
+            self.mode, self.armed = mode, armed
+        elif kind == 'EXTENDED_SYS_STATE':
+            self.landed_state = int(m.landed_state)
+        elif kind == 'LOCAL_POSITION_NED':
+            self.local_ned = (float(m.x), float(m.y), float(m.z))
+        elif kind == 'GPS_GLOBAL_ORIGIN':
+            self.origin = (int(m.latitude), int(m.longitude), int(m.altitude))
+        elif kind == 'STATUSTEXT':
+            self.texts.append((now, str(m.text)))
+        elif kind == 'COMMAND_ACK':
+            self.acks.append((now, int(m.command), int(m.result)))
+        elif kind == 'PARAM_VALUE':
+            self.params[str(m.param_id)] = float(m.param_value)   # ArduPilot: plain floats
+
+    def command(self, cmd: int, *params: float) -> None:
+        p = [float(v) for v in params] + [0.0] * (7 - len(params))
+        self.mav.command_long_send(self.target, 1, cmd, 0, *p)
+
+    def stream(self, msg_id: int, rate_hz: float) -> None:
+        self.command(MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / rate_hz)
+
+    def set_mode(self, custom_mode: int) -> None:
+        self.command(MAV_CMD_DO_SET_MODE, 1, custom_mode)
+
+    def read_params(self, names, timeout_s: float = 5.0) -> dict[str, float]:
+        """ArduCopter's values of ``names`` (PARAM_REQUEST_READ, repeated for the missing)."""
+        names = list(names)
+        for name in names:
+            self.params.pop(name, None)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            missing = [n for n in names if n not in self.params]
+            if not missing:
+                break
+            for name in missing:
+                self.mav.param_request_read_send(self.target, 1, name.encode('ascii'), -1)
+            time.sleep(0.3)
+        return {n: self.params[n] for n in names if n in self.params}
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        with self._lock:
+            if self.sock is not None:
+                self.sock.close()
+                self.sock = None
+
+
+class ArduPilotMission(_Px4MissionBase):
+    """ArduCopter SITL for one mission of ``scenario``: the :class:`~deckland.sitl.mission.
+    Px4Mission` interface (``deckland up`` drives both), ArduCopter's way.
+
+    ArduCopter ``--model JSON`` on deckland's physics (the simulator node, ``autopilot:
+    ardupilot-sitl``, lockstep at :data:`JSON_RATE_HZ`), the bridge on SERIAL0 (its TCP
+    connection boots ArduCopter), the operator on SERIAL1: the EKF origin at the world's
+    origin, GUIDED, arm, ArduCopter's own take-off to the scenario's start height; the
+    bridge then measures the hover and enters GUIDED_NOGPS (:attr:`OFFBOARD_MODE`). Its
+    stop action (LAND) ends the mission; ArduCopter's LAND disarms."""
+
+    NAME = 'ArduCopter'
+    OFFBOARD_MODE = 'GUIDED_NOGPS'
+    ORIGIN_MSG_ID = 49     # GPS_GLOBAL_ORIGIN
+
+    def __init__(self, scenario, *, keep_ulog: str | None = None, nice: int = 0) -> None:
+        from deck_simulator.ardupilot_json import SEA_LEVEL_HOME
+        self.scenario = scenario
+        self.home = SEA_LEVEL_HOME
+        self.params = {**MISSION_PARAMS, **mission_params(scenario)}
+        self.wire = False
+        self.keep_ulog = pathlib.Path(keep_ulog) if keep_ulog else None
+        self.sitl = ArduPilotSitl('JSON', self.params, home=SEA_LEVEL_HOME, nice=nice,
+                                  keep_log_dir=self.keep_ulog)
+        self.operator: ArduPilotOperator | None = None
+        self.times: dict[str, float] = {}
+        self.param_fixes: dict[str, float | None] = {}
+        self.hover: float | None = None
+        self._t0 = float('nan')
+
+    def start(self) -> None:
+        self._t0 = time.monotonic()
+        self.sitl.start()
+        self.sitl.wait_listening()
+        self.operator = ArduPilotOperator(self.ports['serial1_tcp'])
+
+    def stop(self) -> None:
+        if self.operator is not None:
+            self.operator.close()
+        self.sitl.stop()
+
+    @property
+    def ports(self) -> dict[str, int]:
+        return self.sitl.ports
+
+    def describe(self) -> str:
+        s = self.sitl
+        return (f'ArduCopter SITL {s.binary} instance {s.instance} in {s.workdir} (SERIAL0 TCP '
+                f"{self.ports['mavlink_tcp']}, JSON physics UDP {self.ports['physics_udp']}, "
+                f"operator TCP {self.ports['serial1_tcp']})")
+
+    def configure_graph(self, nodes: list) -> None:
+        """The simulator is ArduCopter's JSON physics (UDP 9002 + 10 i, physics at
+        :data:`JSON_RATE_HZ`); the bridge talks ArduPilot on SERIAL0 (TCP 5760 + 10 i), its
+        map anchored at the world's origin (:attr:`home`: the JSON positions are relative to
+        it)."""
+        for spec in nodes:
+            if spec.name == 'deck_simulator':
+                spec.parameters.update(autopilot='ardupilot-sitl',
+                                       ardupilot_physics_port=self.ports['physics_udp'],
+                                       physics_rate_hz=float(JSON_RATE_HZ))
+            elif spec.name == 'mavlink_bridge':
+                lat, lon, alt, _ = self.home
+                spec.parameters.update(connection=self.sitl.connection, autopilot='ardupilot',
+                                       map_origin_llh=f'{lat:.7f},{lon:.7f},{alt:g}',
+                                       **BRIDGE_SITL_PARAMS)
+
+    def _log_tail(self) -> str:
+        return self.sitl.log_text()[-1500:]
+
+    def _proc_gone(self) -> bool:
+        return self.sitl.proc is None or self.sitl.proc.poll() is not None
+
+    def wait_up(self, timeout_s: float, abort=None) -> tuple[bool, str]:
+        """ArduCopter's heartbeat on the operator's link (it boots once the bridge connected
+        and the simulator answers its servo frames), then its parameters checked."""
+        op = self.operator
+        assert op is not None
+        _wait(lambda: op.heartbeats > 0 or self._proc_gone(), timeout_s, abort)
+        if self._proc_gone():
+            return False, f'ArduCopter exited while starting; its output ends:\n{self._log_tail()}'
+        if op.heartbeats == 0:
+            return False, (f'ArduCopter sent no heartbeat within {timeout_s:g} s; its output '
+                           f'ends:\n{self._log_tail()}')
+        self.times['up_s'] = time.monotonic() - self._t0
+        return self.check_params()
+
+    def check_params(self) -> tuple[bool, str]:
+        """Every parameter of the mission read back (float32 on the wire)."""
+        op = self.operator
+        assert op is not None
+        vals = op.read_params(self.params)
+        bad = {k: vals.get(k) for k, v in self.params.items()
+               if k not in vals or abs(vals[k] - float(v)) > 1e-5 + 1e-6 * abs(float(v))}
+        self.param_fixes = dict(bad)
+        if bad:
+            return False, f'ArduCopter did not take the parameters {bad}'
+        return True, 'ArduCopter up, parameters checked'
+
+    def take_off(self, timeout_s: float = 150.0, abort=None) -> tuple[bool, str]:
+        """As an operator would: wait for ArduCopter's EKF origin (its first GPS fix: the
+        bridge anchors map at :attr:`home` through it), GUIDED and arm (repeated until
+        ArduCopter has a position estimate), ArduCopter's own take-off (NAV_TAKEOFF) to the
+        scenario's start height, until it hovers there (within 0.3 m)."""
+        from mavlink_bridge.conversions import origin_offset_enu
+        op = self.operator
+        assert op is not None
+        end = time.monotonic() + timeout_s
+
+        def left() -> float:
+            return max(0.0, end - time.monotonic())
+
+        def origin_known() -> bool:
+            if op.origin is None and time.monotonic() - origin_known.last > 2.0:
+                origin_known.last = time.monotonic()
+                op.command(512, self.ORIGIN_MSG_ID)          # REQUEST_MESSAGE
+            return op.origin is not None
+
+        origin_known.last = 0.0
+        if not _wait(origin_known, min(90.0, left()), abort, 0.1):
+            return False, 'ArduCopter set no EKF origin within 90 s (no GPS fix used)'
+        lat, lon, alt, _ = self.home
+        origin = origin_offset_enu(op.origin, (lat, lon, alt))
+        self.times['origin_s'] = time.monotonic() - self._t0
+        t_arm = time.monotonic()
+
+        def armed_in_guided() -> bool:
+            if time.monotonic() - armed_in_guided.last > 1.0:
+                armed_in_guided.last = time.monotonic()
+                if op.mode != 'GUIDED':
+                    op.set_mode(GUIDED)
+                elif not op.armed:
+                    op.command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            return op.armed and op.mode == 'GUIDED'
+
+        armed_in_guided.last = 0.0
+        if not _wait(armed_in_guided, min(90.0, left()), abort, 0.1):
+            texts = '; '.join(t for _, t in op.texts[-5:])
+            return False, f'ArduCopter did not arm in GUIDED within 90 s ({texts})'
+        self.times['armed_s'] = time.monotonic() - self._t0
+        self.times['arm_wait_s'] = time.monotonic() - t_arm
+        # above the resting point, where it armed (its home; the local origin's height)
+        height = float(self.scenario.start_position_m[2]) - origin[2]
+        op.command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, height)
+
+        def up_there() -> bool:
+            lp = op.local_ned
+            return lp is not None and abs(-lp[2] - height) < 0.3 and op.mode == 'GUIDED'
+
+        if not _wait(up_there, left(), abort):
+            return False, (f'ArduCopter not at {height:.2f} m after its take-off (mode '
+                           f'{op.mode}, local position {op.local_ned})')
+        self.times['loiter_s'] = time.monotonic() - self._t0
+        return True, (f'ArduCopter hovers at {-op.local_ned[2] + origin[2]:.2f} m (GUIDED); '
+                      f'its local origin at ({origin[0]:.2f}, {origin[1]:.2f}, '
+                      f'{origin[2]:.2f}) m in map')
+
+    def report(self, t_ref_s: float | None = None) -> dict:
+        """What ArduCopter did, for ``report.json`` (the PX4 mission's keys)."""
+        op = self.operator
+        t_ref = self._t0 if t_ref_s is None else t_ref_s
+        return {
+            'binary': str(self.sitl.binary), 'instance': self.sitl.instance,
+            'params': dict(self.params), 'params_wrong_after_boot': dict(self.param_fixes),
+            'hover_thrust_measured': self.hover,
+            'times_s': {k: round(v, 2) for k, v in self.times.items()},
+            'armed_at_end': op.armed if op is not None else None,
+            'landed_state_at_end': op.landed_state if op is not None else None,
+            'mode_at_end': op.mode if op is not None else '',
+            'modes': self.modes_since(t_ref) if op is not None else [],
+            'statustext': [t for _, t in op.texts[-12:]] if op is not None else [],
+            'ardupilot_cpu_s': round(self.sitl.cpu_s(), 1),
+            'log_dir': str(self.keep_ulog) if self.keep_ulog else None,
+        }

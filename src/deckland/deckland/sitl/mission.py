@@ -237,6 +237,10 @@ class Px4Mission:
 
     #: topics that flow only in the air (on the ground the planner disables the thrust)
     GROUND_SILENT = ('control/thrust', 'control/attitude')
+    #: the firmware's name and the mode it flies the companion's setpoints in
+    #: (:class:`deckland.sitl.ardupilot.ArduPilotMission` is the other backend)
+    NAME = 'PX4'
+    OFFBOARD_MODE = 'OFFBOARD'
 
     def __init__(self, scenario: Scenario, *, keep_ulog: str | None = None, nice: int = 0,
                  hil: HilParams | None = None) -> None:
@@ -267,6 +271,13 @@ class Px4Mission:
     @property
     def ports(self) -> dict[str, int]:
         return self.px4.ports
+
+    def describe(self) -> str:
+        """One log line: where PX4 runs and its ports."""
+        p = self.ports
+        return (f'PX4 SITL {self.px4.root} instance {self.px4.instance} in {self.px4.workdir} '
+                f"(simulator TCP {p['simulator_tcp']}, onboard UDP {p['onboard_remote']}, GCS "
+                f"UDP {p['gcs_local']})")
 
     def configure_graph(self, nodes: list) -> None:
         """Point the graph at PX4: the simulator flies in lockstep with it (TCP 4560 + i,
@@ -458,15 +469,16 @@ def operator_take_off(px4: Px4Mission, monitor, log, abort=None) -> tuple[bool, 
     thrust in PX4's loiter, and the planner's take-off (its IDLE holds the height it latched
     on the ground; TAKEOFF resets the reference to the height flown now and holds the
     approach height). ``monitor``: :class:`deckland.up.MissionMonitor`; ``log(text)``."""
-    log('PX4: EKF origin at the world origin, arm, take off (PX4 AUTO.TAKEOFF)')
+    name = px4.NAME
+    log(f"{name}: EKF origin, arm, take off ({name}'s own take-off)")
     ok, msg = px4.take_off(abort=abort)
-    log(f'PX4 take-off: {msg}')
+    log(f'{name} take-off: {msg}')
     if not ok:
-        return False, f'PX4 take-off failed: {msg}'
+        return False, f'{name} take-off failed: {msg}'
     hover = px4.wait_hover_measured(monitor.node, HOVER_WAIT_S, abort=abort)
-    log(f"bridge: hover thrust measured in PX4's hover {hover:.4f}" if math.isfinite(hover)
-        else f"bridge: no steady hover thrust in PX4's hover within {HOVER_WAIT_S:g} s "
-        '(MPC_THR_HOVER is used)')
+    log(f"bridge: hover thrust measured in {name}'s hover {hover:.4f}" if math.isfinite(hover)
+        else f"bridge: no steady hover thrust in {name}'s hover within {HOVER_WAIT_S:g} s "
+        "(the autopilot's hover parameter is used)")
     ok, msg = monitor.trigger('planner/takeoff')
     if not ok and 'timed out' in msg and _wait(
             lambda: monitor.mode in TAKEOFF_TAKEN, 3.0, abort, 0.1):
