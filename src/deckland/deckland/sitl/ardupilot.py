@@ -354,8 +354,9 @@ JSON_RATE_HZ = 400
 #: time, so a lockstep slowed to 0.35x real time by the load made 343-393 ms of wall-clock
 #: "latency" (measured; 0.25 s stopped the first missions, the latency stop's LAND); the
 #: graph's setpoints arrive late too. The 60 ms / 0.3 s of the deck set-up are for the real
-#: link, where time is not stretched
-BRIDGE_SITL_PARAMS = {'max_link_latency_s': 1.0, 'stop_after_s': 1.0}
+#: link, where time is not stretched; ArduCopter's 1 Hz heartbeat is in its time too (a
+#: 3 s link timeout was crossed at 0.3x real time)
+BRIDGE_SITL_PARAMS = {'max_link_latency_s': 1.0, 'stop_after_s': 1.0, 'link_timeout_s': 8.0}
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_DO_SET_MODE = 176
