@@ -23,7 +23,8 @@ from deckland import accel
 # two baselines on a nominal and an irregular-heave scenario.
 _FAULTS = sorted(p.stem for p in pathlib.Path(accel._package_dir('deck_simulator'), 'data')
                  .glob('fault_*.yaml'))
-_MATRIX = ([(s, 'dob') for s in ('paper', 'paper_calm', 'gusty', 'sea_state_3', 'sea_state_4')]
+_MATRIX = ([(s, 'dob') for s in ('paper', 'paper_calm', 'gusty', 'sea_state_3', 'sea_state_4',
+                                  'ship_ss3', 'ship_ss4', 'ship_turning')]
            + [(s, 'dob') for s in _FAULTS]
            + [(s, c) for s in ('paper', 'sea_state_4') for c in ('pid', 'constant-rate')])
 _SEEDS = (100001, 200002)

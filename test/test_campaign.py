@@ -71,15 +71,23 @@ def test_deck_blind_baseline_lands_harder_than_the_deck_relative_descent():
     assert report['touchdown_speed_mps']['p50'] > 0.35
 
 
+def landed(i, **kw):
+    base = {'seed': i, 'scenario': 's', 'controller': 'dob', 'landed_on_deck': True,
+            'success': True, 'contact_kind': 'pad', 'horizontal_error_m': 0.01 * i,
+            'touchdown_speed_mps': 0.1 * i, 'lateral_speed_mps': 0.02 * i,
+            'tilt_rad': 0.01 * i, 'impacts': 1, 'max_impact_speed_mps': 0.1 * i,
+            'bounces': 0, 'settled': True, 'time_to_land_s': 10.0 + i,
+            'sim_time_s': 11.0 + i, 'outcome': 'deck'}
+    base.update(kw)
+    return RunResult(**base)
+
+
 def test_summary_statistics_and_json_shape():
-    results = [
-        RunResult(seed=i, scenario='s', controller='dob', landed_on_deck=True, success=True,
-                  contact_kind='pad', horizontal_error_m=0.01 * i, touchdown_speed_mps=0.1 * i,
-                  time_to_land_s=10.0 + i, sim_time_s=11.0 + i, outcome='deck')
-        for i in range(1, 5)
-    ] + [RunResult(seed=9, scenario='s', controller='dob', contact_kind='ground',
-                   fallback=True, time_to_land_s=50.0, sim_time_s=50.0, reason='fallback',
-                   outcome='fallback')]
+    results = [landed(i) for i in range(1, 5)] + [
+        RunResult(seed=9, scenario='s', controller='dob', contact_kind='ground',
+                  fallback=True, touchdown_speed_mps=0.5, lateral_speed_mps=0.0, tilt_rad=0.0,
+                  impacts=1, max_impact_speed_mps=0.5, settled=True, time_to_land_s=50.0,
+                  sim_time_s=50.0, reason='fallback', outcome='fallback')]
     report = summarize(results, 's', 'dob', 1, wall_time_s=2.0)
     assert report['success_rate'] == pytest.approx(0.8)
     assert report['fallback_rate'] == pytest.approx(0.2)
@@ -88,14 +96,42 @@ def test_summary_statistics_and_json_shape():
     assert report['touchdown_speed_mps']['max'] == pytest.approx(0.4)
     assert report['realtime_factor'] == pytest.approx((12 + 13 + 14 + 15 + 50) / 2.0)
     assert report['failures'] == [{'seed': 9, 'reason': 'fallback', 'outcome': 'fallback'}]
-    assert report['outcomes'] == {'deck': 4, 'fallback': 1, 'hold': 0, 'crash': 0,
-                                  'unstable': 0}
+    assert report['outcomes'] == {'deck': 4, 'failed': 0, 'fallback': 1, 'hold': 0,
+                                  'crash': 0, 'unstable': 0}
+    # the first contact over every run that touched: the fallback's 0.5 m/s is the max
+    assert report['first_contact']['runs'] == 5
+    assert report['first_contact']['normal_speed_mps']['max'] == pytest.approx(0.5)
+    assert report['first_contact']['normal_speed_mps']['p50'] == pytest.approx(0.3)
+    assert report['first_contact']['lateral_speed_mps']['max'] == pytest.approx(0.08)
     for key in ('scenario', 'controller', 'runs', 'seed', 'success_rate', 'fallback_rate',
                 'crash_rate', 'horizontal_error_m', 'touchdown_speed_mps', 'time_to_land_s',
-                'wall_time_s', 'realtime_factor', 'failures', 'outcomes'):
+                'wall_time_s', 'realtime_factor', 'failures', 'outcomes', 'success_ci95',
+                'first_contact', 'impacts', 'bounces', 'settled_rate'):
         assert key in report
     json.dumps(report, allow_nan=False)
-    assert 'success' in format_table([report])
+    table = format_table([report])
+    assert 'success' in table and '95 % interval' in table and '1st normal max' in table
+
+
+def test_report_is_uncensored_and_the_success_rate_has_its_wilson_interval():
+    """A hard bounce that a first-contact-only score would call a landing counts as what it
+    is; the interval is Wilson's (4 of 5: 37.6-96.4 %, 100 of 100: 96.3-100 %)."""
+    results = [landed(i) for i in range(1, 5)] + [
+        landed(7, success=False, landed_on_deck=False, crash=True, touchdown_speed_mps=0.3,
+               impacts=3, max_impact_speed_mps=1.4, bounces=2, max_bounce_height_m=0.12,
+               settled=False, outcome='crash', reason='impact 1.40 m/s > 1.00 at 12.30 s')]
+    report = summarize(results, 's', 'dob', 1, wall_time_s=1.0)
+    assert report['crash_rate'] == pytest.approx(0.2) and report['outcomes']['crash'] == 1
+    assert report['impacts'] == {'runs_with_later_impacts': 1, 'later_impacts': 2,
+                                 'max_speed_mps': report['impacts']['max_speed_mps']}
+    assert report['impacts']['max_speed_mps']['max'] == pytest.approx(1.4)
+    assert report['bounces']['runs'] == 1 and report['bounces']['total'] == 2
+    assert report['bounces']['max_height_m']['max'] == pytest.approx(0.12)
+    assert report['settled_rate'] == pytest.approx(0.8)
+    assert report['touchdown_speed_mps']['max'] == pytest.approx(0.4)   # successes only
+    assert report['success_ci95'] == pytest.approx([0.3755, 0.9638], abs=1e-4)
+    many = summarize([landed(1)] * 100, 's', 'dob', 1, wall_time_s=1.0)
+    assert many['success_ci95'] == pytest.approx([0.963, 1.0], abs=1e-3)
 
 
 def test_cli_campaign_writes_the_report(tmp_path):

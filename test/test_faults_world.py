@@ -2,7 +2,6 @@
 
 import dataclasses
 import math
-import timeit
 
 from deck_simulator.scenario import HeaveSpec, load_scenario
 from deck_simulator.world import World
@@ -202,17 +201,3 @@ def test_command_link_without_link_faults_is_set_command():
     for _ in range(800):
         w3.step(DT)
     assert w3.failsafe is None      # monitoring starts only with an accepted command
-
-
-def test_step_cost_with_and_without_faults():
-    plain = World(load_scenario('paper'), 1)
-    faulty = World(dataclasses.replace(load_scenario('paper'), faults=[
-        {'type': 'gust_step', 'start_s': 0.0, 'wind_mps': [1.0, 0.0, 0.0]},
-        {'type': 'mavlink_latency', 'start_s': 50.0},
-        {'type': 'lidar_dropout', 'trigger_height_m': 0.2}]), 1)
-    faulty.command_link(0.0, 0.0, 0.0, 0.0, faulty.vehicle.cmd_thrust)
-    n = 2000
-    us_plain = min(timeit.repeat(lambda: plain.step(DT), number=n, repeat=3)) / n * 1e6
-    us_fault = min(timeit.repeat(lambda: faulty.step(DT), number=n, repeat=3)) / n * 1e6
-    print(f'\nWorld.step: {us_plain:.2f} us without faults, {us_fault:.2f} us with 3 faults')
-    assert us_fault < 60.0

@@ -6,7 +6,6 @@ import random
 from apron_estimator.horizontal import AccelIntegrator
 from apron_estimator.vertical import VerticalFilter
 from deck_simulator.sensors import Gps, GpsParams, Imu, ImuParams, normal_stream
-from deck_simulator.vehicle import Vehicle, VehicleParams
 from deckland.perf import measure_realtime_factor
 from landing_planner.planner import _finite
 import pytest
@@ -53,23 +52,6 @@ def test_sensor_without_a_normal_source_draws_rng_gauss_as_before():
     twin.gauss(0.0, gp.alt_bias_std_m)
     pos, _ = gps.read(0.0, (1.0, 2.0, 3.0), (0.0, 0.0, 0.0))
     assert pos[0] == pytest.approx(1.0 + bx + twin.gauss(0.0, gp.noise_m), abs=1e-15)
-
-
-def test_vehicle_hoisted_constants_ground_effect_and_gravity():
-    """Level, motors at m g: at rotor height z_p the vertical acceleration is (γ − 1) g with
-    γ of (4) and the true ρ (≈ 0 in free air); the clamp of (4) holds at the surface."""
-    p = VehicleParams()
-    weight = p.mass_kg * p.gravity_mps2
-    for z_p in (50.0, 0.6, 0.2):
-        v = Vehicle(p, (0.0, 0.0, z_p - p.rotor_height_m), 0.0, weight)
-        v.step(1e-4, 0.0, 0.0, 0.0, 0.0)
-        gamma = 1.0 / (1.0 - p.rho_true * p.prop_radius_m ** 2 / (4.0 * z_p) ** 2)
-        assert v.gamma == pytest.approx(gamma, rel=1e-12)
-        assert v.az == pytest.approx((gamma - 1.0) * p.gravity_mps2, rel=1e-6, abs=1e-12)
-        assert v.ax == pytest.approx(0.0, abs=1e-12) and v.ay == pytest.approx(0.0, abs=1e-12)
-    clamp = Vehicle(p, (0.0, 0.0, -p.rotor_height_m), 0.0, weight)   # rotor plane at 0
-    clamp.step(1e-4, 0.0, 0.0, 0.0, 0.0)
-    assert clamp.gamma == p.ge_max_gain
 
 
 def test_height_at_equals_state_height():

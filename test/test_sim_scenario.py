@@ -55,13 +55,13 @@ def test_types_and_ranges_are_checked():
 def test_overrides_and_file_loading(tmp_path):
     path = tmp_path / 'mine.yaml'
     path.write_text(yaml.safe_dump({
-        'name': 'mine', 'vehicle': {'rho_true': 1.0},
+        'name': 'mine', 'vehicle': {'ground_effect': {'body_coeff': 1.0}},
         'sensors': {'camera': {'fov_x_deg': 75.0}},
         'apron': {'heave': {'model': 'sea_state', 'significant_height_m': 0.8,
                             'spectrum': 'pierson_moskowitz'}},
         'faults': []}))
     sc = load_scenario(path)
-    assert sc.vehicle.rho_true == 1.0 and sc.vehicle.mass_kg == 2.71
+    assert sc.vehicle.ground_effect.body_coeff == 1.0 and sc.vehicle.mass_kg == 2.71
     assert sc.sensors.camera.fov_x_deg == 75.0 and sc.sensors.camera.fov_y_deg == 47.0
     assert sc.apron.heave.spectrum == 'pierson_moskowitz'
     with pytest.raises(ValueError, match='no such built-in'):

@@ -1,8 +1,7 @@
-"""World: touchdown classification, riding the deck, lidar over the pad, determinism, input."""
+"""World: landings scored over the whole contact, the deck models, sensors, determinism, input."""
 
 import dataclasses
 import math
-import timeit
 
 from deck_simulator.scenario import HeaveSpec, load_scenario
 from deck_simulator.world import World
@@ -25,64 +24,103 @@ def place(world, x, y, z, vz=0.0):
 
 
 def descend_until_contact(world, vz_ref=-0.3, seconds=20.0, thrust=None):
-    """Descend at vz_ref with a vertical-speed P loop on truth (or a fixed thrust)."""
+    """Descend at vz_ref with a vertical-speed P loop on truth, the true ground-effect gain
+    divided out (a P loop alone hovers on the cushion near a surface), or a fixed thrust."""
     p = world.params
+    v = world.vehicle
     for k in range(round(seconds / DT)):
         if k % 4 == 0:
-            vz = world.vehicle.vz
-            u = thrust if thrust is not None else p.mass_kg * (p.gravity_mps2 +
-                                                                 3.0 * (vz_ref - vz))
-            world.set_command(0.0, 0.0, world.vehicle.yaw, u)
+            u = thrust if thrust is not None else p.mass_kg * (
+                p.gravity_mps2 + 3.0 * (vz_ref - v.vz)) / v.gamma
+            world.set_command(0.0, 0.0, v.yaw, u)
         world.step(DT)
         if world.contact is not None:
             break
     return world.contact
 
 
-def test_soft_landing_on_pad_then_rides_the_deck():
+def run_until_done(world, seconds=10.0):
+    for _ in range(round(seconds / DT)):
+        world.step(DT)
+        if world.landing_done:
+            break
+
+
+def test_soft_landing_on_the_pad_settles_on_the_heaving_deck_and_scores_deck():
     w = World(calm(HeaveSpec(model='sine', amplitude_m=0.15, period_s=6.0)), seed=1)
     cx, cy, _ = w.truth().beacon_position_m
     place(w, cx + 0.05, cy, 1.5)
     c = descend_until_contact(w)
     assert c is not None and c.kind == 'pad'
-    assert c.touchdown_speed_mps == pytest.approx(abs(c.vehicle_vz_mps - c.surface_vz_mps))
-    assert c.horizontal_error_m == pytest.approx(0.05, abs=1e-6)
-    # gear bottom on the pad top at contact (within one step of motion)
-    assert c.position_m[2] - w.params.gear_height_m == pytest.approx(
-        w.deck.state(c.t_s)[2], abs=0.01)
-    assert c.touchdown_speed_mps < 0.6
-    out = w.outcome()
-    assert out.landed_on_deck and not out.crash and not out.fallback
-    # idle thrust after touchdown: the vehicle follows the heaving deck
+    assert c.horizontal_error_m == pytest.approx(0.05, abs=1e-3)
+    assert 0.05 < c.touchdown_speed_mps < 0.6 and c.lateral_speed_mps < 0.01
+    assert not w.landing_done                        # armed: not settled yet
+    # motors idle (the controller's landed thrust), then disarmed: it rides the deck
     w.set_command(0.0, 0.0, 0.0, 0.0)
+    for _ in range(round(1.0 / DT)):
+        w.step(DT)
+    assert w.resting_on == 'pad' and w.disarm()
+    p = w.params
+    sag = p.mass_kg * p.gravity_mps2 / p.contact.stiffness_n_per_m
     for _ in range(round(3.0 / DT)):
         w.step(DT)
         tr = w.truth()
-        assert tr.position_m[2] == pytest.approx(tr.deck_height_m + w.params.gear_height_m)
-        assert tr.velocity_mps[2] == pytest.approx(tr.deck_vz_mps)
-    assert w.resting_on == 'pad'
+        assert tr.position_m[2] == pytest.approx(tr.deck_height_m + p.gear.height_m - sag,
+                                                 abs=2e-4)
+        assert tr.velocity_mps[2] == pytest.approx(tr.deck_vz_mps, abs=2e-3)
+    assert w.landing_done and not w.armed
+    out = w.outcome()
+    assert out.landed_on_deck and out.landing == 'deck' and out.settled
+    assert not out.crash and not out.fallback and out.reason == 'landed on the pad'
+    assert out.impacts == 1 and out.bounces == 0
 
 
-def test_deck_rising_into_hovering_vehicle_counts_deck_speed():
+def test_deck_rising_into_a_hovering_vehicle_counts_the_deck_speed():
     w = World(calm(HeaveSpec(model='sine', amplitude_m=0.3, period_s=4.0)), seed=2)
     cx, cy, _ = w.truth().beacon_position_m
-    top = 0.6 + 0.3
-    place(w, cx, cy, top + 0.15 + 0.01)
+    place(w, cx, cy, 0.85 + w.params.gear.height_m)   # the deck rises through 0.85 m
     p = w.params
-    c = descend_until_contact(w, thrust=p.mass_kg * p.gravity_mps2 / p.gamma(0.25), seconds=8.0)
+    v = w.vehicle
+    before = None
+    for _ in range(round(8.0 / DT)):
+        before = (v.vz, w.truth().deck_vz_mps)
+        w.set_command(0.0, 0.0, 0.0, p.mass_kg * p.gravity_mps2 / v.gamma)   # hover
+        w.step(DT)
+        if w.contact is not None:
+            break
+    c = w.contact
     assert c is not None and c.kind == 'pad'
-    assert abs(c.surface_vz_mps) > 0.05          # the deck was moving
-    assert c.touchdown_speed_mps == pytest.approx(abs(c.vehicle_vz_mps - c.surface_vz_mps))
+    assert before[1] > 0.05          # the deck rose into the hover (its cushion lifts the
+    #                                  vehicle a little: the motors lag the gain)
+    # relative along the (level) deck normal, seen before the contact force acted (the
+    # deck accelerates by ≤ A ω² = 0.74 m/s² over the 2.5 ms between)
+    assert c.touchdown_speed_mps == pytest.approx(before[1] - before[0], abs=0.005)
 
 
-def test_edge_contact_is_a_crash():
+def test_flying_into_the_side_of_the_apron_is_an_edge_strike_and_a_crash():
+    w = World(calm(), seed=3)
+    cx, cy, top = w.truth().beacon_position_m
+    p = w.params
+    # beside the box, the gear 5 cm below its top, moving into its side at 0.5 m/s
+    place(w, cx + w.pad_half_x + p.gear.half_length_m + 0.02, cy, top - 0.05 + p.gear.height_m)
+    w.vehicle.vx = -0.5
+    w.set_command(0.0, 0.0, 0.0, p.mass_kg * p.gravity_mps2)
+    run_until_done(w, 1.0)
+    assert w.contact.kind == 'edge' and w.landing_done
+    out = w.outcome()
+    assert out.crash and out.landing == 'crash' and 'edge strike' in out.reason
+
+
+def test_landing_half_over_the_edge_is_never_a_success():
+    """Centre of mass above the pad's edge line: two feet on the pad, two over the drop."""
     w = World(calm(), seed=3)
     cx, cy, _ = w.truth().beacon_position_m
-    place(w, cx + w.deck.half_x, cy, 1.5)           # centre on the edge line
-    c = descend_until_contact(w)
-    assert c.kind == 'edge'
+    place(w, cx + w.pad_half_x, cy, 1.2)
+    assert descend_until_contact(w) is not None
+    w.disarm()
+    run_until_done(w, 5.0)
     out = w.outcome()
-    assert out.crash and not out.landed_on_deck and 'edge' in out.reason
+    assert not out.landed_on_deck and out.landing in ('crash', 'failed'), out.reason
 
 
 def test_ground_contact_is_fallback_and_hard_drop_is_crash():
@@ -91,18 +129,20 @@ def test_ground_contact_is_fallback_and_hard_drop_is_crash():
     place(w, cx + 3.0, cy, 1.0)
     c = descend_until_contact(w)
     assert c.kind == 'ground'
-    assert c.horizontal_error_m == pytest.approx(3.0, abs=1e-6)
+    assert c.horizontal_error_m == pytest.approx(3.0, abs=1e-3)
     out = w.outcome()
     assert out.fallback and not out.crash and not out.landed_on_deck
-    # zero thrust from 3 m without drag: touchdown speed ≈ √(2 g h) > crash limit
+    # motors off from 3 m without drag: touchdown speed ≈ √(2 g h) > crash limit
     sc = calm()
     w = World(dataclasses.replace(sc, vehicle=dataclasses.replace(
         sc.vehicle, drag_linear_n_per_mps=0.0, drag_quad_v_kg_per_m=0.0)), seed=4)
     place(w, cx + 3.0, cy, 3.0)
+    w.disarm()
     c = descend_until_contact(w, thrust=0.0)
     assert c.kind == 'ground'
-    assert c.touchdown_speed_mps == pytest.approx(math.sqrt(2 * 9.81 * 2.85), rel=0.03)
-    assert w.outcome().crash
+    gear = w.params.gear.height_m
+    assert c.touchdown_speed_mps == pytest.approx(math.sqrt(2 * 9.81 * (3.0 - gear)), rel=0.01)
+    assert w.landing_done and w.outcome().crash
 
 
 def test_hover_start_is_trimmed():
@@ -111,6 +151,24 @@ def test_hover_start_is_trimmed():
     for _ in range(400):
         w.step(DT)
     assert abs(w.truth().position_m[2] - z0) < 1e-3
+
+
+def test_a_deck_drifting_at_half_a_metre_per_second_carries_the_landed_vehicle():
+    """The existing drift key (issue 13's translating deck): the pad moves, a vehicle resting
+    on it moves with it by friction and settles relative to it."""
+    w = World(calm(drift_velocity_mps=(0.5, 0.0)), seed=6)
+    cx, cy, top = w.truth().beacon_position_m
+    p = w.params
+    place(w, cx, cy, top + p.gear.height_m + 0.02)
+    w.vehicle.vx = 0.5
+    w.disarm()
+    run_until_done(w, 4.0)
+    tr = w.truth()
+    assert tr.deck_velocity_mps == (0.5, 0.0)
+    assert tr.velocity_mps[0] == pytest.approx(0.5, abs=1e-3)
+    assert tr.position_m[0] - tr.beacon_position_m[0] == pytest.approx(0.0, abs=0.01)
+    out = w.outcome()
+    assert out.landing == 'deck' and out.settled and out.lateral_speed_mps < 0.01
 
 
 def test_lidar_drops_by_deck_height_when_pad_comes_under():
@@ -156,10 +214,11 @@ def closed_loop_streams(seed, scenario='paper', seconds=3.0):
     return out
 
 
-def test_determinism_same_seed_same_streams_different_seed_differs():
-    a = closed_loop_streams(11)
-    assert a == closed_loop_streams(11)
-    assert a != closed_loop_streams(12)
+@pytest.mark.parametrize('scenario', ['paper', 'ship_ss4'])
+def test_determinism_same_seed_same_streams_different_seed_differs(scenario):
+    a = closed_loop_streams(11, scenario)
+    assert a == closed_loop_streams(11, scenario)
+    assert a != closed_loop_streams(12, scenario)
 
 
 def test_sub_stepping_equals_fine_steps():
@@ -183,6 +242,8 @@ def test_bad_input_is_rejected_and_counted():
     w.set_command(0.0, 0.0, 0.0, float('inf'))
     assert w.rejected['nan'] == 2
     assert (w.vehicle.cmd_roll, w.vehicle.cmd_thrust) == (0.1, 20.0)
+    assert not w.command_link(0.0, 0.0, math.nan, 0.0, 20.0) and w.rejected['nan'] == 3
+    assert not w.autopilot.active                  # a rejected command engages nothing
 
 
 def test_per_run_randomisation_comes_from_the_seed():
@@ -202,14 +263,6 @@ def test_per_run_randomisation_comes_from_the_seed():
     assert max(errs) > 0.8
 
 
-def test_step_cost_report():
-    w = World(load_scenario('sea_state_4'), 1)
-    n = 4000
-    us = min(timeit.repeat(lambda: w.step(DT), number=n, repeat=3)) / n * 1e6
-    print(f'\nWorld.step: {us:.2f} us')
-    assert us < 60.0      # generous bound for loaded CI machines; target ~8 us
-
-
 def test_true_lidar_range_is_the_full_matrix_formula_bit_for_bit():
     import random
 
@@ -221,8 +274,8 @@ def test_true_lidar_range_is_the_full_matrix_formula_bit_for_bit():
     for _ in range(500):
         v = w.vehicle
         v.x, v.y, v.z = cx + rng.uniform(-2, 2), cy + rng.uniform(-2, 2), rng.uniform(-0.1, 3)
-        v.roll, v.pitch = rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6)
-        v.yaw = rng.uniform(-math.pi, math.pi)
+        v.set_attitude(rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6),
+                       rng.uniform(-math.pi, math.pi))
         ref = lidar_true_range((v.x, v.y, v.z), rot_body_to_world(v.roll, v.pitch, v.yaw),
-                               (cx, cy), ztop, (w.deck.half_x, w.deck.half_y))
+                               (cx, cy), ztop, (w.pad_half_x, w.pad_half_y))
         assert w.true_lidar_range() == ref

@@ -15,15 +15,18 @@ from types import SimpleNamespace
 
 from conftest import isolated_env
 from deck_simulator.scenario import load_scenario
+from deckland.sitl import SITL_AUTOPILOTS, SitlNotFoundError, SitlStartError
 from deckland.sitl.ardupilot import (
     JSON_RATE_HZ,
     MISSION_PARAMS,
     ArduPilotMission,
     ArduPilotNotFoundError,
+    ArduPilotStartError,
+    failsafe_check,
     find_ardupilot,
     mission_params,
+    require_ardupilot,
 )
-from deckland.sitl.campaign import FIRMWARE, failsafe_check
 import pytest
 
 try:
@@ -61,17 +64,30 @@ def test_the_graph_is_pointed_at_arducopter_and_anchored_at_the_worlds_origin():
     assert mission.OFFBOARD_MODE == 'GUIDED_NOGPS' and mission.NAME == 'ArduCopter'
 
 
+def test_ardupilot_is_one_more_entry_of_the_registry():
+    ap = SITL_AUTOPILOTS['ardupilot-sitl']
+    assert ap.load('mission') is ArduPilotMission and ap.report_key == 'ardupilot'
+    assert ap.load('find') is require_ardupilot and ap.load('failsafe_check') is failsafe_check
+    sc = load_scenario('paper')
+    p = ap.load('params')(sc)
+    assert p == {**MISSION_PARAMS, **mission_params(sc)} == ArduPilotMission(sc).params
+    assert p['GUID_OPTIONS'] == 8 and p['SIM_RATE_HZ'] == JSON_RATE_HZ
+    # up/campaign catch the generic errors
+    assert issubclass(ArduPilotNotFoundError, SitlNotFoundError)
+    assert issubclass(ArduPilotStartError, SitlStartError)
+
+
 def test_failsafe_check_wants_land_after_guided_nogps_landed_and_disarmed():
     good = {'contact_kind': 'ground', 'crash': False, 'ardupilot': {
         'armed_at_end': False, 'landed_state_at_end': 1, 'modes': [
             {'mode': 'GUIDED'}, {'mode': 'GUIDED_NOGPS'}, {'mode': 'LAND'}]}}
-    assert FIRMWARE['ardupilot-sitl'] == ('ardupilot', 'GUIDED_NOGPS')
-    assert failsafe_check(good, {}, 'ardupilot-sitl', 'LAND')['ok']
+    assert failsafe_check(good, {})['ok']
     hold = {**good, 'ardupilot': {**good['ardupilot'], 'modes': [{'mode': 'GUIDED_NOGPS'}]}}
-    chk = failsafe_check(hold, {}, 'ardupilot-sitl', 'LAND')
+    chk = failsafe_check(hold, {})
+    assert chk['action_expected'] == 'LAND'
     assert not chk['ok'] and chk['action_seen'] == ''              # the unattended hover
     armed = {**good, 'ardupilot': {**good['ardupilot'], 'armed_at_end': True}}
-    assert not failsafe_check(armed, {}, 'ardupilot-sitl', 'LAND')['ok']
+    assert not failsafe_check(armed, {})['ok']
 
 
 def test_up_and_campaign_say_when_arducopter_is_missing(tmp_path):

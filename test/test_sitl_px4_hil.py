@@ -204,7 +204,7 @@ def test_px4_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_context):
     context, executor = ros_context
     with Px4Sitl(NONE_IRIS, px4_params(vp, takeoff_alt_m=2.0), nice=10) as px4:
         hil = Px4Hil(world, HilParams(port=px4.ports['simulator_tcp']))
-        assert v.z == pytest.approx(vp.gear_height_m) and world.resting_on == 'ground'
+        assert v.z == pytest.approx(vp.gear_height_m, abs=1e-3) and world.resting_on == 'ground'
         lock = None
         op = None
         try:
@@ -223,7 +223,9 @@ def test_px4_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_context):
             core = bridge.core
             op = Operator(px4)
             assert wait_for(lambda: core.link_up(time.monotonic()), 10.0)
-            assert wait_for(lambda: 'COM_OBL_RC_ACT' in core.autopilot_params, 10.0)
+            # the bridge reads PX4's parameters one by one: wait for the ones checked here
+            assert wait_for(lambda: {'COM_OBL_RC_ACT', 'MPC_THR_HOVER'} <= set(
+                core.autopilot_params), 10.0)
             assert core.autopilot_params['COM_OBL_RC_ACT'] == 4.0      # set by px4_params
             assert core.autopilot_params['MPC_THR_HOVER'] == pytest.approx(0.5)
             # the operator arms and takes off with PX4's own take-off to MIS_TAKEOFF_ALT

@@ -55,6 +55,9 @@ def test_mission_params_carry_the_scenarios_failsafe_to_px4():
     assert p['COM_OF_LOSS_T'] == f.loss_timeout_s == 0.3
     assert p['RTL_RETURN_ALT'] == p['RTL_DESCEND_ALT'] == f.min_alt_m == 2.0
     assert p['MPC_LAND_SPEED'] == f.land_speed_mps == 0.5 and p['RTL_LAND_DELAY'] == 0.0
+    # home (1.7 m from the deck) is not "reached" at once, and PX4 climbs before it returns
+    assert p['NAV_ACC_RAD'] < 0.5 and p['RTL_MIN_DIST'] == 0.0 and p['RTL_CONE_ANG'] == 0
+    assert 'NAV_ACC_RAD' not in paper
     assert wire_faults(sc) and not wire_faults(load_scenario('fault_node_kill'))
     kill = mission_params(load_scenario(str(BRIDGE_KILL)))
     assert kill['COM_OBL_RC_ACT'] == OBL_RETURN and kill['COM_OF_LOSS_T'] == 0.3
@@ -206,6 +209,67 @@ def test_compare_is_the_ratio_of_the_percentiles():
     assert c['horizontal_error_m_p50_ratio'] == 2.0 and c['touchdown_speed_mps_p95_ratio'] == 2.5
     assert c['within_factor_2'] is False
     assert compare(b, b)['within_factor_2'] is True
+
+
+class _Monitor:
+    """MissionMonitor's trigger and planner/mode, scripted."""
+
+    def __init__(self, answers, mode_after=None):
+        self.answers, self.calls, self.mode, self.node = list(answers), 0, 'IDLE', None
+        self.mode_after = mode_after
+
+    def trigger(self, service, timeout_s=5.0):
+        self.calls += 1
+        if self.mode_after is not None and self.calls >= self.mode_after:
+            self.mode = 'TAKEOFF'
+        return self.answers.pop(0)
+
+
+class _Px4:
+    NAME = 'PX4'
+
+    def take_off(self, abort=None):
+        return True, 'PX4 loiters at 2.00 m'
+
+    def wait_hover_measured(self, node, timeout_s, abort=None):
+        return math.nan
+
+
+def test_the_operator_asks_the_planner_again_when_a_reply_is_lost():
+    from deckland.sitl.mission import TAKEOFF_TRIGGER_ATTEMPTS, operator_take_off
+    lost = (False, 'service planner/takeoff timed out')
+    # no reply and planner/mode unchanged: asked again, the second call answers
+    mon = _Monitor([lost, (True, 'taking off')])
+    assert operator_take_off(_Px4(), mon, lambda _t: None) == (True, 'taking off')
+    assert mon.calls == 2
+    # no reply but planner/mode shows the take-off: not asked again
+    mon = _Monitor([lost], mode_after=1)
+    ok, msg = operator_take_off(_Px4(), mon, lambda _t: None)
+    assert ok and 'reply lost' in msg and mon.calls == 1
+    # a refusal is final; so is silence every time
+    mon = _Monitor([(False, 'not in IDLE')])
+    assert operator_take_off(_Px4(), mon, lambda _t: None)[0] is False and mon.calls == 1
+    mon = _Monitor([lost] * TAKEOFF_TRIGGER_ATTEMPTS)
+    ok, msg = operator_take_off(_Px4(), mon, lambda _t: None)
+    assert not ok and 'timed out' in msg and mon.calls == TAKEOFF_TRIGGER_ATTEMPTS
+
+
+# --- the registry of firmwares ---------------------------------------------------------------
+
+def test_the_registry_names_px4_and_every_entry_loads():
+    from deckland.sitl import SITL_AUTOPILOTS, SitlAutopilot, SitlNotFoundError, register
+    from deckland.sitl.mission import Px4Mission
+    from deckland.sitl.px4 import Px4StartError
+    px4 = SITL_AUTOPILOTS['px4-sitl']
+    assert px4.load('mission') is Px4Mission and px4.load('params') is mission_params
+    assert px4.load('failsafe_check') is failsafe_check and px4.report_key == 'px4'
+    # up/campaign/bench catch the generic errors: PX4's are those
+    assert issubclass(Px4NotFoundError, SitlNotFoundError)
+    assert issubclass(Px4StartError, RuntimeError) and not issubclass(
+        Px4StartError, SitlNotFoundError)
+    for name in ('px4-sitl', 'emulator', 'in-process'):
+        with pytest.raises(ValueError, match='already registered'):
+            register(SitlAutopilot(name, '', *('m:a',) * 4, 'k'))
 
 
 # --- clear errors ----------------------------------------------------------------------------

@@ -60,7 +60,8 @@ def socket_parameters(hardware: bool, **kw):
     out = []
     for spec in graph['nodes']:
         for name, value in effective_parameters(spec).items():
-            if isinstance(value, str) and any(w in name for w in SOCKET_WORDS):
+            # an empty one opens no socket (deck_simulator's px4_onboard_url: no relay)
+            if isinstance(value, str) and value and any(w in name for w in SOCKET_WORDS):
                 out.append((spec.name, name, value))
     return graph, out
 
@@ -180,6 +181,22 @@ def test_summary_lists_outcome_numbers_and_where_things_are():
     assert 'safe (no crash); autopilot failsafe AUTO.LAND' in text
     assert 'touchdown speed   n/a' in text and 'node_kill dob_altitude at 5.0 s' in text
     assert 'not recorded' in text and EXIT_CODES[1] in text
+
+
+def test_summary_shows_the_landing_record_of_the_shared_scoring():
+    """The simulator's outcome record (the campaigns' RunOutcome): class, relative figures,
+    impacts and bounces."""
+    report = {'success': False, 'reason': 'not settled', 'crash': False, 'safe': True,
+              'outcome': 'failed', 'settled': False, 'contact_kind': 'pad',
+              'touchdown_speed_mps': 0.31, 'lateral_speed_mps': 0.12, 'tilt_rad': 0.05,
+              'impacts': 3, 'bounces': 2, 'max_impact_speed_mps': 0.52,
+              'max_bounce_height_m': 0.043}
+    text = '\n'.join(summary_lines(report, 1, None))
+    for want in ('class             failed', 'lateral speed     0.12 m/s',
+                 'relative tilt     2.9 deg', 'impacts, bounces  3, 2 (fastest 0.52 m/s, '
+                 'highest hop 0.043 m)', 'no successful landing (not settled)'):
+        assert want in text, text
+    assert '(settled)' in '\n'.join(summary_lines({**report, 'settled': True}, 0, None))
 
 
 def test_exit_codes_are_documented():

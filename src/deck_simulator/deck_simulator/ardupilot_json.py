@@ -22,7 +22,6 @@ import time
 from deckland_common.frames import enu_to_ned, flu_to_frd, rot_body_to_world
 from mavlink_bridge.conversions import euler_enu_to_quat_ned
 
-from deck_simulator.px4_hil import place_on_ground
 from deck_simulator.sensor_imu import ImuModel, ImuModelParams, body_rates_from_euler
 from deck_simulator.sensor_models import model_streams
 from deck_simulator.vehicle import VehicleParams
@@ -214,7 +213,7 @@ class ArduPilotJson:
         self._answer_due = False
         self._silent = 0
         if start_on_ground:
-            place_on_ground(world)
+            world.place_on_surface()
         world.vehicle.set_motor_thrusts(0.0, 0.0, 0.0, 0.0)
 
     # --- connection and the step() mode ---------------------------------------------------------

@@ -61,6 +61,8 @@ class Autopilot(Protocol):
 
     #: stepped by the world (:meth:`tick` every physics sub-step) while True
     active: bool
+    #: the motors run (the world cuts them while False)
+    armed: bool
     #: offboard-loss failsafes engaged so far
     failsafes: int
 
@@ -117,13 +119,16 @@ def with_link_fault(base: AutopilotParams, spec: Any) -> AutopilotParams:
                    return_speed_mps=spec.return_speed_mps)
 
 
-def in_process_params(spec: Any) -> AutopilotParams:
-    """The in-process autopilot of a world with link faults: the fault's settings, its
-    ``hold_s`` before the action, its ``reengage_offboard``, no land detector (a run ends
-    on touchdown)."""
-    return replace(with_link_fault(AutopilotParams(disarm_landed_s=0.0,
-                                                   disarm_preflight_s=0.0), spec),
-                   action_delay_s=spec.hold_s, reengage_offboard=spec.reengage_offboard)
+def in_process_params(spec: Any = None) -> AutopilotParams:
+    """The in-process autopilot of a world: PX4's defaults, or with a link fault (``spec``)
+    the fault's settings, its ``hold_s`` before the action and its ``reengage_offboard``;
+    the land detector on (``COM_DISARM_LAND``: it disarms 2 s after touchdown), no preflight
+    disarm (the run starts in the air)."""
+    base = AutopilotParams(disarm_preflight_s=0.0)
+    if spec is None:
+        return base
+    return replace(with_link_fault(base, spec), action_delay_s=spec.hold_s,
+                   reengage_offboard=spec.reengage_offboard)
 
 
 class EmulatedAutopilot:

@@ -277,11 +277,48 @@ class ContactModel:
         return max(1, math.ceil(dt_s * self.omega_max / lim - 1e-9))
 
     def near(self, body: RigidBody, dt_s: float) -> bool:
-        """True if a point may touch a surface within dt_s (or touches one now)."""
-        speed = math.sqrt(body.vx * body.vx + body.vy * body.vy + body.vz * body.vz)
+        """True if a point may touch a surface within dt_s (or touches one now): the lowest
+        point along a surface's normal is within ``near_margin_m`` plus the relative motion
+        over dt_s of its top plane (and over its rectangle, by the same slack)."""
         w = math.sqrt(body.p * body.p + body.q * body.q + body.r * body.r)
-        reach = self.r_max + self.near_margin + (speed + w * self.r_max) * dt_s
-        return any(self._within(s, body, reach) for s in self.surfaces)
+        hit = False
+        for s in self.surfaces:     # a plain loop: no generator on the 400 Hz path
+            if self._close(s, body, w, dt_s):
+                hit = True
+                break
+        return hit
+
+    def _close(self, s: Surface, body: RigidBody, w: float, dt_s: float) -> bool:
+        bx, by, bz = body.x, body.y, body.z
+        dx, dy, dz = bx - s.cx, by - s.cy, bz - s.cz
+        nx, ny, nz = s.nx, s.ny, s.nz
+        h0 = dx * nx + dy * ny + dz * nz
+        svx, svy, svz = s.velocity_at(bx, by, bz)
+        rx, ry, rz = body.vx - svx, body.vy - svy, body.vz - svz
+        ws = math.sqrt(s.ox * s.ox + s.oy * s.oy + s.oz * s.oz)
+        r_max = self.r_max
+        slack = self.near_margin + (math.sqrt(rx * rx + ry * ry + rz * rz)
+                                    + (w + ws) * r_max) * dt_s
+        if h0 - r_max > slack or h0 < -(s.depth + r_max + slack):
+            return False
+        # the lowest point along n: min over the points of p · (Rᵀ n)
+        bnx = body.r00 * nx + body.r10 * ny + body.r20 * nz
+        bny = body.r01 * nx + body.r11 * ny + body.r21 * nz
+        bnz = body.r02 * nx + body.r12 * ny + body.r22 * nz
+        pts = self.points_body
+        low = math.inf
+        for i in range(self.n_points):
+            d = pts[3 * i] * bnx + pts[3 * i + 1] * bny + pts[3 * i + 2] * bnz
+            if d < low:
+                low = d
+        if h0 + low > slack:
+            return False
+        if s.half_u == math.inf:
+            return True
+        reach = r_max + slack
+        a0 = dx * s.ux + dy * s.uy + dz * s.uz
+        b0 = dx * s.wx + dy * s.wy + dz * s.wz
+        return abs(a0) <= s.half_u + reach and abs(b0) <= s.half_w + reach
 
     def _within(self, s: Surface, body: RigidBody, reach: float) -> bool:
         dx, dy, dz = body.x - s.cx, body.y - s.cy, body.z - s.cz

@@ -29,6 +29,9 @@ from deck_simulator.world import Truth, World
 #: mode outside this set; TAKEOFF is a take-off, not a landing trigger)
 NOT_LANDING_MODES = frozenset({'IDLE', 'HOLD', 'TAKEOFF'})
 AUTOPILOT_INPUT_HZ = 100.0     # the emulator reads the wire at PX4's control rate
+#: the outcome waits this long after the first contact at most (as the runner's
+#: ``settle_after_contact_s``): settling needs the land detector's disarm and 1 s still
+SETTLE_CAP_S = 10.0
 
 
 def body_rates(roll: float, pitch: float, droll: float, dpitch: float,
@@ -260,7 +263,11 @@ class SimulationLoop:
         world = self.world
         with self._lock:
             trigger, searches, mode = self.trigger_t_s, self.searches, self.mode
-        if world.contact is not None:
+        c = world.contact
+        if c is not None:
+            # the landing is scored once settled or crashed (or SETTLE_CAP_S after contact)
+            if not world.landing_done and t - c.t_s < SETTLE_CAP_S:
+                return None
             out = outcome_dict(landing_outcome(world, self.seed, trigger, searches, mode, ''))
         else:
             deadline = (trigger if trigger is not None else 0.0) + self.scenario.timeout_s
@@ -331,5 +338,5 @@ class TickSchedule:
         return deadline
 
 
-__all__ = ['AUTOPILOT_INPUT_HZ', 'NOT_LANDING_MODES', 'SimulationLoop', 'TickSchedule',
-           'body_rates', 'body_twist']
+__all__ = ['AUTOPILOT_INPUT_HZ', 'NOT_LANDING_MODES', 'SETTLE_CAP_S', 'SimulationLoop',
+           'TickSchedule', 'body_rates', 'body_twist']

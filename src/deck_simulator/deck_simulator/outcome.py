@@ -1,10 +1,10 @@
-"""The outcome record of one landing run and its safety class (pure).
+"""The outcome record of one landing run and its class (pure).
 
 :class:`RunOutcome` is the one definition of a run's outcome fields: the in-process runner's
 ``RunResult`` extends it, and the simulator node publishes it as JSON on ``sim/outcome``.
-:func:`landing_outcome` fills it from a :class:`~deck_simulator.world.World`; :func:`classify`
-names the safety class (docs/failsafe.md): ``deck``, ``fallback``, ``hold``, ``crash`` or
-``unstable``.
+:func:`landing_outcome` fills it from a :class:`~deck_simulator.world.World` (its touchdown
+record over the whole landing); :func:`classify` names the class (docs/failsafe.md):
+``deck``, ``failed``, ``fallback``, ``hold``, ``crash`` or ``unstable``.
 """
 
 from __future__ import annotations
@@ -27,13 +27,13 @@ class RunOutcome:
 
     seed: int
     scenario: str
-    landed_on_deck: bool = False
-    success: bool = False           # on the pad and no crash
+    landed_on_deck: bool = False    # every landing rule kept (the class is 'deck')
+    success: bool = False           # the same: a landing a pilot would accept
     crash: bool = False
-    fallback: bool = False          # a landing on the ground
-    contact_kind: str = 'none'      # 'pad' | 'edge' | 'ground' | 'none'
-    horizontal_error_m: float = math.nan
-    touchdown_speed_mps: float = math.nan
+    fallback: bool = False          # first contact on the ground (a landing elsewhere)
+    contact_kind: str = 'none'      # first contact: pad | deck | edge | ground | water | hull
+    horizontal_error_m: float = math.nan   # first contact, centre of mass to the pad centre
+    touchdown_speed_mps: float = math.nan  # first contact, relative, along the deck normal
     time_to_land_s: float = math.nan   # contact time from the landing trigger
     searches: int = 0
     max_thrust_n: float = 0.0
@@ -42,23 +42,34 @@ class RunOutcome:
     sim_time_s: float = 0.0
     outcome: str = ''               # safety class, see classify()
     failsafes: int = 0              # times the autopilot's offboard-loss failsafe engaged
-    failsafe_mode: str = ''         # its phase at the end ('' = none)
+    failsafe_mode: str = ''         # its phase at the end, or the last before the disarm
     final_height_m: float = math.nan   # true height above the surface below at the end
     final_speed_mps: float = math.nan  # true speed at the end (3-D)
+    # the touchdown record (deck_simulator.touchdown): first contact, later impacts, bounces
+    lateral_speed_mps: float = math.nan   # first contact, relative, along the surface
+    tilt_rad: float = math.nan            # first contact, body z vs the surface normal
+    impacts: int = 0                      # the first contact and every later impact
+    max_impact_speed_mps: float = math.nan   # largest relative normal speed of any impact
+    bounces: int = 0
+    max_bounce_height_m: float = math.nan
+    settled: bool = False                 # disarmed and still on a surface for 1 s
 
 
 def classify(crash: bool, contact_kind: str, final_speed_mps: float, final_height_m: float,
-             roll_rad: float = 0.0, pitch_rad: float = 0.0) -> str:
-    """Safety class of a finished run: ``deck`` (landed on the pad), ``fallback`` (a
-    deliberate landing on the ground, not a crash), ``hold`` (no touchdown, airborne and
-    stable at the end), ``crash`` (edge strike, too fast or too tilted) or ``unstable`` (no
-    touchdown but not a stable hover: counted as unsafe)."""
+             roll_rad: float = 0.0, pitch_rad: float = 0.0, failed: bool = False) -> str:
+    """Class of a finished run: ``crash`` (a crash rule of the landing broken: docs/world/
+    contact.md), ``fallback`` (first contact on the ground, not a crash: a deliberate landing
+    elsewhere), ``failed`` (touched the deck but broke a pilot's rule: ``failed``), ``deck``
+    (landed on the pad, every rule kept), ``hold`` (no touchdown, airborne and stable at the
+    end) or ``unstable`` (no touchdown but not a stable hover: counted as unsafe)."""
     if crash:
         return 'crash'
-    if contact_kind == 'pad':
-        return 'deck'
     if contact_kind == 'ground':
         return 'fallback'
+    if failed or contact_kind not in ('pad', 'none'):
+        return 'failed'
+    if contact_kind == 'pad':
+        return 'deck'
     tilt = math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
     if (final_speed_mps <= HOLD_MAX_SPEED_MPS and tilt <= HOLD_MAX_TILT_RAD
             and final_height_m >= HOLD_MIN_HEIGHT_M):
@@ -68,9 +79,9 @@ def classify(crash: bool, contact_kind: str, final_speed_mps: float, final_heigh
 
 def landing_outcome(world: World, seed: int, trigger_t_s: float | None, searches: int,
                     final_mode: str, no_contact_reason: str) -> RunOutcome:
-    """The record of ``world`` now: its first contact (``time_to_land_s`` from
-    ``trigger_t_s``, NaN without a trigger), or ``no_contact_reason``; the autopilot's
-    failsafes; the final state and the safety class."""
+    """The record of ``world`` now: its landing (first contact, ``time_to_land_s`` from
+    ``trigger_t_s``, NaN without a trigger; later impacts, bounces, the rules broken), or
+    ``no_contact_reason``; the autopilot's failsafes; the final state and the class."""
     o = world.outcome()
     rec = RunOutcome(seed=seed, scenario=world.scenario.name, searches=searches,
                      max_thrust_n=o.max_thrust_n, final_mode=final_mode,
@@ -85,16 +96,24 @@ def landing_outcome(world: World, seed: int, trigger_t_s: float | None, searches
         rec.landed_on_deck = o.landed_on_deck
         rec.crash = o.crash
         rec.fallback = o.fallback
-        rec.success = o.landed_on_deck and not o.crash
+        rec.success = o.landed_on_deck
         rec.reason = o.reason
+        rec.lateral_speed_mps = o.lateral_speed_mps
+        rec.tilt_rad = o.tilt_rad
+        rec.impacts = o.impacts
+        rec.max_impact_speed_mps = o.max_impact_speed_mps
+        rec.bounces = o.bounces
+        rec.max_bounce_height_m = o.max_bounce_height_m
+        rec.settled = o.settled
     truth = world.truth()
     ap = world.autopilot
     rec.failsafes = ap.failsafes if ap is not None else 0
-    rec.failsafe_mode = world.failsafe or ''
+    rec.failsafe_mode = world.failsafe or world.last_failsafe
     rec.final_height_m = truth.height_above_surface_m
     rec.final_speed_mps = math.hypot(*truth.velocity_mps)
     rec.outcome = classify(rec.crash, rec.contact_kind, rec.final_speed_mps,
-                           rec.final_height_m, truth.roll_rad, truth.pitch_rad)
+                           rec.final_height_m, truth.roll_rad, truth.pitch_rad,
+                           failed=o.landing == 'failed')
     return rec
 
 

@@ -134,18 +134,6 @@ def px4_params(vehicle: VehicleParams, hil: HilParams | None = None, *,
     return p
 
 
-def place_on_ground(w: World) -> None:
-    """Rest on the ground (or the deck) below the start: the world's contact constraint holds
-    the vehicle until the thrust lifts it (no touchdown event: resting from t0), motors off."""
-    v = w.vehicle
-    tr = w.truth()
-    v.z = tr.surface_height_m + w.params.gear_height_m
-    v.vx = v.vy = v.vz = v.ax = v.ay = v.az = 0.0
-    v.roll = v.pitch = v.roll_rate = v.pitch_rate = v.yaw_rate = 0.0
-    v.f1 = v.f2 = v.f3 = v.f4 = 0.0
-    w.resting_on = 'pad' if tr.over_pad and tr.surface_height_m > 0.0 else 'ground'
-
-
 class TcpServerLink:
     """The simulator's TCP endpoint: listens on ``(host, port)``, one peer (PX4)."""
 
@@ -264,7 +252,9 @@ class Px4Hil:
     # --- set-up --------------------------------------------------------------------------
 
     def _place_on_ground(self) -> None:
-        place_on_ground(self.world)
+        """Rest on the ground (or the deck) below the start until the thrust lifts it (the
+        touchdown monitor watches from the lift-off on: no touchdown at t0)."""
+        self.world.place_on_surface()
 
     def accept(self, timeout_s: float) -> bool:
         """Wait for PX4's connection (it retries every 0.5 ms while booting)."""

@@ -11,7 +11,6 @@ must be > 0, got -1``. ``vehicle`` and ``sensors`` override fields of
 from __future__ import annotations
 
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
-import math
 from pathlib import Path
 import typing
 from typing import Any
@@ -21,6 +20,8 @@ import yaml
 
 from deck_simulator.faults import FaultSpec, parse_faults
 from deck_simulator.sensors import SensorParams
+from deck_simulator.ship_params import ShipParams
+from deck_simulator.touchdown import OutcomeRules
 from deck_simulator.vehicle import VehicleParams
 
 DATA_DIR = Path(__file__).resolve().parent / 'data'
@@ -70,15 +71,28 @@ class HeaveSpec:
 
 @dataclass(frozen=True, slots=True)
 class ApronSpec:
+    """The pad: the paper's apron (a box on the ground that heaves and drifts), or the pad
+    on a ship's deck (``ship``: docs/world/ship.md; the ship places and moves it)."""
+
     position_m: tuple[float, float] = (-3.2, -2.0)      # beacon / pad centre, world ENU
-    size_m: tuple[float, float] = (1.05, 0.85)          # x × y extent (Table 3)
+    size_m: tuple[float, float] = (1.05, 0.85)          # x × y extent (Table 3); ship: along
+    #                                                     × across the hull
     mean_height_m: float = 0.60                         # pad top above ground
     heave: HeaveSpec = field(default_factory=HeaveSpec)
     drift_velocity_mps: tuple[float, float] = (0.0, 0.0)
+    ship: ShipParams | None = None
 
     def __post_init__(self) -> None:
         require(all(v > 0 for v in self.size_m), 'size_m', 'must be > 0', self.size_m)
         require(self.mean_height_m >= 0, 'mean_height_m', 'must be >= 0', self.mean_height_m)
+        if self.ship is not None:
+            require(self.heave.model == 'none' and self.drift_velocity_mps == (0.0, 0.0)
+                    and self.position_m == (-3.2, -2.0) and self.mean_height_m == 0.60,
+                    'ship', 'places and moves the pad: give no position_m, mean_height_m, '
+                    'heave or drift_velocity_mps with it', 'both')
+            require(self.size_m[0] <= self.ship.deck_size_m[0]
+                    and self.size_m[1] <= self.ship.deck_size_m[1], 'size_m',
+                    "must fit on the ship's deck (ship.deck_size_m)", self.size_m)
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,17 +140,22 @@ class Scenario:
     sensors: SensorParams = field(default_factory=SensorParams)
     randomize: RandomizeSpec = field(default_factory=RandomizeSpec)
     faults: tuple[FaultSpec, ...] = ()   # entries may be given as mappings (parsed here)
-    crash_speed_mps: float = 1.0
-    max_tilt_rad: float = 0.35
+    #: the landing's outcome rules (touchdown.OutcomeRules; docs/world/contact.md)
+    outcome: OutcomeRules = field(default_factory=OutcomeRules)
 
     def __post_init__(self) -> None:
         require(self.timeout_s > 0, 'timeout_s', 'must be > 0', self.timeout_s)
         require(self.start_position_m[2] > 0, 'start_position_m', 'must have z > 0',
                 self.start_position_m)
         object.__setattr__(self, 'faults', parse_faults(self.faults))
-        require(self.crash_speed_mps > 0, 'crash_speed_mps', 'must be > 0', self.crash_speed_mps)
-        require(0 < self.max_tilt_rad < math.pi / 2, 'max_tilt_rad', 'must be in (0, π/2)',
-                self.max_tilt_rad)
+
+    @property
+    def landing_area_m(self) -> tuple[float, float]:
+        """Where an operator says the pad is at the start (the planner's landing area)."""
+        ship = self.apron.ship
+        if ship is not None:
+            return ship.pad_position_m[0], ship.pad_position_m[1]
+        return self.apron.position_m
 
 
 # --- generic YAML → dataclass builder ---------------------------------------------------------
@@ -165,6 +184,8 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
         return value
     if path == 'faults':
         return parse_faults(value)
+    if path == 'apron.ship':
+        return None if value is None else ShipParams.from_mapping(value, path)
     if tp is tuple or origin is tuple:
         if not isinstance(value, list | tuple):
             raise ValueError(f'{path} must be a list, got {value!r}')

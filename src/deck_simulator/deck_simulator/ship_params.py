@@ -40,6 +40,7 @@ class ShipParams:
     pad_position_m: tuple[float, float] = (0.0, 0.0)   # pad centre's mean position at t = 0
     motion_centre_height_m: float = 0.6  # centre of motion above the mean water level (z = 0)
     pad_offset_m: tuple[float, float, float] = (-5.0, 0.0, 1.9)  # pad top from it, hull FLU
+    deck_size_m: tuple[float, float] = (5.0, 5.0)  # deck around the pad (centred), along × across
     # sea
     significant_height_m: float = 0.88   # Hs = 4 √m0
     peak_period_s: float = 7.5           # Tp
@@ -67,6 +68,9 @@ class ShipParams:
         finite_tuple('pad_position_m', self.pad_position_m, 2)
         finite('motion_centre_height_m', self.motion_centre_height_m)
         finite_tuple('pad_offset_m', self.pad_offset_m, 3)
+        finite_tuple('deck_size_m', self.deck_size_m, 2)
+        require(all(v > 0.0 for v in self.deck_size_m), 'deck_size_m', 'must be > 0',
+                self.deck_size_m)
         require(self.motion_centre_height_m + self.pad_offset_m[2] > 0.0, 'pad_offset_m',
                 'must put the pad top above the mean water level '
                 '(motion_centre_height_m + pad_offset_m[2] > 0)', self.pad_offset_m)
@@ -88,6 +92,7 @@ class ShipParams:
         # YAML gives lists and ints: store tuples of floats
         object.__setattr__(self, 'pad_position_m', tuple(float(v) for v in self.pad_position_m))
         object.__setattr__(self, 'pad_offset_m', tuple(float(v) for v in self.pad_offset_m))
+        object.__setattr__(self, 'deck_size_m', tuple(float(v) for v in self.deck_size_m))
 
     @classmethod
     def from_mapping(cls, data: Any, path: str = 'ship') -> ShipParams:

@@ -27,7 +27,7 @@ class OutcomeRules:
     crash_speed_mps: float = 1.0              # any impact, relative normal speed
     max_lateral_speed_mps: float = 0.5        # any impact, relative speed along the surface
     max_tilt_rad: float = math.radians(12.0)  # any impact, vehicle vs surface
-    max_bounce_height_m: float = math.inf     # off by default (bounces are reported)
+    max_bounce_height_m: float | None = None  # None: off (bounces are reported)
     tip_over_tilt_rad: float = 0.0            # 0: the gear's static stability angle
     settle_speed_mps: float = 0.05
     settle_rate_radps: float = 0.2
@@ -40,8 +40,8 @@ class OutcomeRules:
         positive('crash_speed_mps', self.crash_speed_mps)
         positive('max_lateral_speed_mps', self.max_lateral_speed_mps)
         in_range('max_tilt_rad', self.max_tilt_rad, 0.0, math.pi / 2)
-        require(self.max_bounce_height_m > 0, 'max_bounce_height_m', 'must be > 0',
-                self.max_bounce_height_m)
+        if self.max_bounce_height_m is not None:
+            positive('max_bounce_height_m', self.max_bounce_height_m)
         in_range('tip_over_tilt_rad', self.tip_over_tilt_rad, 0.0, math.pi / 2)
         positive('settle_speed_mps', self.settle_speed_mps)
         positive('settle_rate_radps', self.settle_rate_radps)
@@ -66,7 +66,7 @@ class Pad:
 @dataclass(frozen=True, slots=True)
 class Impact:
     t_s: float
-    surface: str              # 'pad' | 'deck' (off the pad) | 'edge' | 'ground' | 'hull'
+    surface: str              # 'pad' | 'deck' (off the pad) | 'edge' | 'ground' | 'water' | 'hull'
     normal_speed_mps: float   # relative, along the surface normal, positive approaching
     lateral_speed_mps: float  # relative, along the surface
     tilt_rad: float           # body z vs surface normal
@@ -136,6 +136,11 @@ class TouchdownMonitor:
     @property
     def in_contact(self) -> bool:
         return self._phase == _CONTACT
+
+    @property
+    def first(self) -> Impact | None:
+        """The first contact, once there is one."""
+        return self._first
 
     @property
     def done(self) -> bool:
@@ -344,6 +349,9 @@ class TouchdownMonitor:
         if self.left_deck:
             reasons.append('bounced or slid off the deck')
             crash = True
+        if first.surface == 'water':
+            reasons.append('landed in the water')
+            crash = True
         failed = False
         for imp in self._impacts:
             if imp.lateral_speed_mps > ru.max_lateral_speed_mps:
@@ -354,8 +362,9 @@ class TouchdownMonitor:
                 reasons.append(f'tilt {math.degrees(imp.tilt_rad):.1f}° > '
                                f'{math.degrees(ru.max_tilt_rad):.1f}° at {imp.t_s:.2f} s')
                 failed = True
-        if self.max_bounce_m > ru.max_bounce_height_m:
-            reasons.append(f'bounce {self.max_bounce_m:.3f} m > {ru.max_bounce_height_m:.3f}')
+        limit = ru.max_bounce_height_m
+        if limit is not None and self.max_bounce_m > limit:
+            reasons.append(f'bounce {self.max_bounce_m:.3f} m > {limit:.3f}')
             failed = True
         if self.slid_off_pad:
             reasons.append('slid over the pad edge')

@@ -1,12 +1,13 @@
-"""The simulated world: vehicle truth, heaving deck, wind, sensors and touchdown (pure).
+"""The simulated world: vehicle truth, the deck (heaving apron or ship), wind, sensors, landing.
 
 ``World(scenario, seed)`` is the API of docs/interfaces.md. Every random draw comes from a
 named stream of ``seed`` (``random.Random(f'{seed}:<name>')``, :func:`normal_stream` for the
-Gaussian noise), so e.g. reading the camera more often never changes the GPS noise. Contact:
-``pad`` (gear footprint inside the pad), ``edge`` (partly: a crash) or ``ground``; afterwards
-the vehicle rests on that surface until it lifts off (not after an edge strike); only the first
-contact is scored. With link faults (or a simulator node) the world also flies an autopilot
-(:mod:`deck_simulator.autopilot`) every sub-step. Decisions: the package README.
+Gaussian noise), so e.g. reading the camera more often never changes the GPS noise. The
+vehicle is a free rigid body throughout; its gear and prop tips meet the deck (a box that
+moves and tilts) and the ground (or the sea) as contact physics, and a touchdown monitor
+scores the whole landing (:mod:`deck_simulator.touchdown`). The world flies an autopilot
+(:mod:`deck_simulator.autopilot`) every physics tick; the motors run while it is armed.
+Decisions: the package README and docs/world/contact.md, docs/world/ship.md.
 """
 
 from __future__ import annotations
@@ -17,8 +18,10 @@ import random
 
 from deckland_common.frames import rot_body_to_world
 
-from deck_simulator.autopilot import Autopilot, EmulatedAutopilot, in_process_params
+from deck_simulator.autopilot import ACCEPTED, Autopilot, EmulatedAutopilot, in_process_params
+from deck_simulator.contact import Surface, ground_surface
 from deck_simulator.deck import Deck, make_heave
+from deck_simulator.deck_motion import DeckMotion, HeaveDeckMotion, PadState
 from deck_simulator.faults import FaultSet
 from deck_simulator.link import CommandLink
 from deck_simulator.scenario import Scenario
@@ -32,38 +35,51 @@ from deck_simulator.sensors import (
     lidar_range_along,
     normal_stream,
 )
+from deck_simulator.ship import ShipMotion
+from deck_simulator.touchdown import LandingRecord, Pad, TouchdownMonitor
 from deck_simulator.vehicle import Vehicle
 
-LIFTOFF_MARGIN_MPS2 = 0.2
 GUST_UPDATE_S = 0.01 - 1e-9   # gusts (τ ~ s) are held over 10 ms
+#: the apron's box reaches this far below its top (through the ground: it stands on it)
+APRON_DEPTH_EXTRA_M = 10.0
 
 
 @dataclass(frozen=True, slots=True)
 class ContactEvent:
-    kind: str                       # 'pad' | 'edge' | 'ground'
+    """The first contact of the landing (from the touchdown monitor's record)."""
+
+    kind: str                       # 'pad' | 'deck' | 'edge' | 'ground' | 'water' | 'hull'
     t_s: float
-    touchdown_speed_mps: float      # |vehicle vz − surface vz| at contact
-    horizontal_error_m: float       # vehicle centre to beacon, horizontal
-    tilt_rad: float                 # acos(cos φ cos θ)
-    vehicle_vz_mps: float
-    surface_vz_mps: float
-    position_m: tuple[float, float, float]
+    touchdown_speed_mps: float      # relative, along the surface normal (before contact acts)
+    horizontal_error_m: float       # centre of mass to the pad centre, in the pad plane
+    tilt_rad: float                 # body z vs the surface normal
+    vehicle_vz_mps: float           # at the end of the physics tick of the first contact
+    surface_vz_mps: float           # the deck's (0 for the ground), same instant
+    position_m: tuple[float, float, float]   # centre of mass, same instant
+    lateral_speed_mps: float = 0.0  # relative, along the surface (before contact acts)
 
 
 @dataclass(frozen=True, slots=True)
 class Outcome:
-    """What the runner turns into the run's outcome fields."""
+    """What the runner turns into the run's outcome fields: the landing record, mapped."""
 
-    landed_on_deck: bool            # pad contact without crash
-    crash: bool                     # edge, or speed > crash_speed_mps, or tilt > max_tilt_rad
-    fallback: bool                  # landed on the ground (elsewhere)
-    contact_kind: str               # 'pad' | 'edge' | 'ground' | 'none'
+    landed_on_deck: bool            # the record's class is 'deck' (every rule kept)
+    crash: bool                     # a crash rule broken (docs/world/contact.md)
+    fallback: bool                  # first contact on the ground (a landing elsewhere)
+    contact_kind: str               # first contact: 'pad' | 'deck' | 'edge' | 'ground' | ...
     t_s: float                      # contact time (or current time if no contact)
     horizontal_error_m: float       # at contact (or now)
-    touchdown_speed_mps: float      # 0.0 without contact
-    tilt_rad: float
+    touchdown_speed_mps: float      # first contact, relative normal; 0.0 without contact
+    tilt_rad: float                 # first contact, relative (or the tilt now)
     max_thrust_n: float             # largest collective thrust the motors produced
     reason: str
+    landing: str = 'none'           # record class: deck | failed | crash | fallback | none
+    lateral_speed_mps: float = 0.0  # first contact, relative, along the surface
+    impacts: int = 0                # the first contact and every later impact
+    max_impact_speed_mps: float = 0.0
+    bounces: int = 0
+    max_bounce_height_m: float = 0.0
+    settled: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,17 +93,19 @@ class Truth:
     yaw_rad: float
     euler_rates_radps: tuple[float, float, float]
     beacon_position_m: tuple[float, float, float]   # pad centre on the pad top
-    deck_height_m: float                            # pad top above ground
+    deck_height_m: float                            # pad top above ground (mean sea level)
     deck_vz_mps: float
     deck_az_mps2: float
-    deck_velocity_mps: tuple[float, float]          # horizontal drift
+    deck_velocity_mps: tuple[float, float]          # horizontal velocity of the pad centre
     over_pad: bool                                  # vehicle centre above the pad rectangle
     surface_height_m: float                         # surface below the vehicle centre
     height_above_surface_m: float                   # body origin above that surface
-    gamma: float                                    # true ground-effect gain (4)
+    gamma: float                                    # mean true ground-effect gain of the rotors
     thrust_n: float                                 # collective the motors produce now
     wind_mps: tuple[float, float, float]
     resting_on: str | None                          # surface the vehicle rests on, if any
+    deck_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)   # pad attitude (Z-Y-X)
+    armed: bool = True                              # the motors run
 
 
 class World:
@@ -118,18 +136,62 @@ class World:
         self.wind_mean = (mx * math.cos(rot) - my * math.sin(rot),
                           mx * math.sin(rot) + my * math.cos(rot))
         mean_h = sc.apron.mean_height_m + setup.uniform(-rz.mean_height_m, rz.mean_height_m)
-        heave = make_heave(sc.apron.heave, stream('heave'), sc.timeout_s + 60.0,
-                           random_phase=rz.heave_phase)
-        self.deck_mean_m = max(0.0, mean_h)
-        self.deck = Deck(sc.apron.position_m, sc.apron.size_m, self.deck_mean_m, heave,
-                         sc.apron.drift_velocity_mps)
-
         vp = sc.vehicle
         self.params = vp
-        _, _, ztop0, _, _ = self.deck.state(0.0)
-        surf0 = ztop0 if self._over_pad(start[0], start[1], 0.0) else 0.0
+        cp = vp.contact
+        ap_spec = sc.apron
+        ship_p = ap_spec.ship
+        self.pad_half_x, self.pad_half_y = 0.5 * ap_spec.size_m[0], 0.5 * ap_spec.size_m[1]
+        # the deck: the paper's heaving apron (level, axis-aligned: a box standing on the
+        # ground) or a ship's deck (moving, tilted; the pad on it, the sea around it)
+        self.deck: Deck | None = None
+        self.ship: ShipMotion | None = None
+        if ship_p is None:
+            heave = make_heave(ap_spec.heave, stream('heave'), sc.timeout_s + 60.0,
+                               random_phase=rz.heave_phase)
+            self.deck_mean_m = max(0.0, mean_h)
+            deck = Deck(ap_spec.position_m, ap_spec.size_m, self.deck_mean_m, heave,
+                        ap_spec.drift_velocity_mps)
+            self.deck = deck
+            self.deck_motion: DeckMotion = HeaveDeckMotion(deck)
+            deck_surface = Surface('deck', deck.half_x, deck.half_y,
+                                   self.deck_mean_m + APRON_DEPTH_EXTRA_M, cp.friction_deck)
+            ground = ground_surface(cp.friction_ground)
+            pad = Pad()
+        else:
+            ship = ShipMotion(ship_p, stream('ship'), sc.timeout_s + 60.0)
+            self.ship = ship
+            self.deck_motion = ship
+            top = ship_p.motion_centre_height_m + ship_p.pad_offset_m[2]
+            self.deck_mean_m = top
+            # the deck reaches down through the waterline (the hull)
+            deck_surface = Surface('deck', 0.5 * ship_p.deck_size_m[0],
+                                   0.5 * ship_p.deck_size_m[1], top + ship_p.draft_m,
+                                   cp.friction_deck)
+            ground = Surface('water', math.inf, math.inf, math.inf, cp.friction_ground)
+            pad = Pad(0, 0.0, 0.0, self.pad_half_x, self.pad_half_y)
+        self.deck_surface = deck_surface
+        self.ground = ground
+        #: what the gear, the prop tips and the rotor wakes meet: [deck, ground or sea]
+        self.surfaces: list[Surface] = [deck_surface, ground]
+        self.t_s = 0.0
+        self._pad_now: PadState | None = None
+        # deck state at self.t_s: the heave deck's (cx, cy, z_top, vz, az) tuple (the
+        # sensors' and truth()'s), the ship's PadState; one evaluation per contact sub-step
+        self._deck_now: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+        self._set_deck(0.0)
+
+        surf0 = self._surface_below(start[0], start[1], start[2])
         hover = vp.mass_kg * vp.gravity_mps2 / vp.gamma(start[2] + vp.rotor_height_m - surf0)
-        self.vehicle = Vehicle(vp, start, yaw0, hover)
+        self.vehicle = Vehicle(vp, start, yaw0, hover, self.surfaces)
+        self.monitor = TouchdownMonitor(sc.outcome, self.vehicle.contact, pad,
+                                        vp.gear.static_tip_angle_rad())
+        self.vehicle.monitor = self.monitor
+        self._watching = True     # False while resting where placed (place_on_surface)
+        self._armed = True        # the motors' state while no autopilot flies
+        #: the autopilot's last failsafe phase flown ('' = none; it ends at the disarm)
+        self.last_failsafe = ''
+        self._contact: ContactEvent | None = None
 
         self._wind_rng = stream('wind')
         self._wind_normal = n = noise('wind')
@@ -153,33 +215,31 @@ class World:
         self.gps = Gps(sp.gps, stream('gps'), initial_bias=rz.gps_bias, normal=noise('gps'))
         self.imu = Imu(sp.imu, stream('imu'), noise('imu'))
 
-        self.t_s = 0.0
-        # deck state (cx, cy, z_top, vz, az) at self.t_s, kept by _substep (one evaluation
-        # per sub-step serves contact, the sensors at "now" and truth())
-        self._deck_now = self.deck.state(0.0)
-        self.contact: ContactEvent | None = None
         self.resting_on: str | None = None
         self.max_thrust_n = self.vehicle.thrust_n
         self.rejected: dict[str, int] = {'nan': 0, 'bad_dt': 0, 'out_of_order': 0}
 
         # fault injection (deck_simulator.faults): nothing at all without faults
-        cx0, cy0, _, _, _ = self.deck.state(0.0)
-        self.faults: FaultSet | None = (FaultSet(sc.faults, seed, (cx0, cy0), self.deck_mean_m)
-                                        if sc.faults else None)
-        # the autopilot (deck_simulator.autopilot) and, in-process, the command link to it
-        # (deck_simulator.link): only with link faults, or attached by the simulator node
-        self.autopilot: Autopilot | None = None
+        p0 = self.deck_motion.pad_state(0.0).position_m
+        self.faults: FaultSet | None = (FaultSet(sc.faults, seed, (p0[0], p0[1]),
+                                                 self.deck_mean_m) if sc.faults else None)
+        # the autopilot (deck_simulator.autopilot): in-process the world's own, engaged by
+        # the first command_link (with link faults through the command link,
+        # deck_simulator.link); the simulator node attaches its emulator's instead
+        spec = self.faults.link_spec if self.faults is not None and self.faults.has_link else None
+        ap = EmulatedAutopilot(in_process_params(spec), self)
+        self.autopilot: Autopilot | None = ap
+        self._own_autopilot: EmulatedAutopilot | None = ap
         self.link: CommandLink | None = None
-        if self.faults is not None and self.faults.has_link:
-            ap = EmulatedAutopilot(in_process_params(self.faults.link_spec), self)
-            self.autopilot = ap
+        if spec is not None and self.faults is not None:
             self.link = CommandLink(self.faults, seed, ap, self.rejected)
 
     # --- commands and stepping -------------------------------------------------------------
 
     def set_command(self, roll_rad: float, pitch_rad: float, yaw_rad: float,
                     thrust_n: float) -> None:
-        """Attitude setpoint (FLU in ENU, Z-Y-X) and collective thrust u_z in newtons."""
+        """Attitude setpoint (FLU in ENU, Z-Y-X) and collective thrust u_z in newtons, to the
+        vehicle's attitude loop directly (what the autopilot does in OFFBOARD)."""
         # one isfinite on the sum: NaN/inf anywhere makes it non-finite (finite commands would
         # need magnitudes near 1e308 to overflow it)
         if not math.isfinite(roll_rad + pitch_rad + yaw_rad + thrust_n):
@@ -191,26 +251,58 @@ class World:
 
     def command_link(self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float,
                      thrust_n: float) -> bool:
-        """Send a command over the emulated MAVLink link; True if it gets through.
+        """Send a command to the world's autopilot (the companion's MAVLink setpoint); True if
+        it gets through.
 
-        Without link faults this is :meth:`set_command`. With ``mavlink_loss`` /
-        ``mavlink_latency`` / ``mavlink_link_loss`` / ``node_kill`` faults the command goes
-        through :class:`~deck_simulator.link.CommandLink` to the world's
-        :class:`~deck_simulator.autopilot.EmulatedAutopilot`: it may be lost (False; the
-        vehicle keeps the previous command) or applied ``latency_s`` later (FIFO). The first
-        accepted call engages OFFBOARD (home = here); when no command has arrived for
-        ``loss_timeout_s`` the autopilot's failsafe flies (:attr:`failsafe`): hold for
+        The first accepted call engages OFFBOARD (home = here); from then on the autopilot
+        applies the setpoints while armed, runs its land detector (``COM_DISARM_LAND``) and
+        its offboard-loss failsafe. With ``mavlink_loss`` / ``mavlink_latency`` /
+        ``mavlink_link_loss`` / ``node_kill`` faults the command goes through
+        :class:`~deck_simulator.link.CommandLink`: it may be lost (False; the vehicle keeps
+        the previous command) or applied ``latency_s`` later (FIFO); when no command has
+        arrived for ``loss_timeout_s`` the failsafe flies (:attr:`failsafe`): hold for
         ``hold_s``, then the fault's ``action`` (land at ``land_speed_mps``, or return home
         and land); ``reengage_offboard`` lets the next command end it. A non-finite value or
-        a ``t_s`` older than the previous call's is rejected (``rejected['nan']`` /
-        ``['out_of_order']``, False).
+        a ``t_s`` older than the previous call's (with link faults) is rejected
+        (``rejected['nan']`` / ``['out_of_order']``, False). With an attached autopilot (the
+        simulator node's) this is :meth:`set_command`.
         """
         link = self.link
-        if link is None:
-            before = self.rejected['nan']
+        if link is not None:
+            return link.send(t_s, roll_rad, pitch_rad, yaw_rad, thrust_n)
+        if not math.isfinite(t_s + roll_rad + pitch_rad + yaw_rad + thrust_n):
+            self.rejected['nan'] += 1
+            return False
+        ap = self._own_autopilot
+        if ap is None:
             self.set_command(roll_rad, pitch_rad, yaw_rad, thrust_n)
-            return self.rejected['nan'] == before
-        return link.send(t_s, roll_rad, pitch_rad, yaw_rad, thrust_n)
+            return True
+        if not ap.active:
+            ap.engage_offboard(t_s)
+        ap.on_setpoint(t_s, roll_rad, pitch_rad, yaw_rad, thrust_n)
+        return True
+
+    def disarm(self, t_s: float | None = None) -> bool:
+        """The companion's disarm request (the bridge's, when the planner is LANDED); True if
+        accepted. The world's autopilot disarms on the ground only (PX4 refuses in the air;
+        its land detector disarms later). Before any autopilot flies (tests commanding the
+        vehicle directly) the motors stop at once."""
+        ap = self.autopilot
+        t = self.t_s if t_s is None else t_s
+        if isinstance(ap, EmulatedAutopilot) and ap.active:
+            return ap.request_arm(t, False) == ACCEPTED
+        if ap is None or not ap.active:
+            self._armed = False
+            return True
+        return False
+
+    @property
+    def armed(self) -> bool:
+        """The motors run: the flying autopilot's arming state (True before one flies)."""
+        ap = self.autopilot
+        if ap is None or not ap.active:
+            return self._armed
+        return ap.armed
 
     def timesync_rtt_s(self, t_s: float) -> float | None:
         """The simulated MAVLink TIMESYNC: round trip (s) of a request sent at ``t_s``
@@ -229,6 +321,7 @@ class World:
         """Fly ``autopilot`` instead of the in-process one (the simulator node: the link
         faults then act on the wire, so :meth:`command_link` becomes :meth:`set_command`)."""
         self.autopilot = autopilot
+        self._own_autopilot = None
         self.link = None
 
     @property
@@ -247,12 +340,31 @@ class World:
         return out
 
     def surface_below_vehicle(self) -> float:
-        """Height of the surface below the vehicle centre now: the pad top over the pad (and
-        above it), else the ground (0)."""
+        """Height of the surface below the vehicle centre now: the deck's top (the pad top
+        over the apron) under it, if the vehicle is above it, else the ground (0)."""
         v = self.vehicle
-        cx, cy, ztop, _, _ = self._deck_now
-        over = abs(v.x - cx) <= self.deck.half_x and abs(v.y - cy) <= self.deck.half_y
-        return ztop if over and v.z > ztop else 0.0
+        return self._surface_below(v.x, v.y, v.z)
+
+    def _surface_below(self, x: float, y: float, z: float) -> float:
+        if self.ship is None:
+            cx, cy, ztop, _, _ = self._deck_now
+            over = abs(x - cx) <= self.pad_half_x and abs(y - cy) <= self.pad_half_y
+            return ztop if over and z > ztop else 0.0
+        s = self.deck_surface
+        a, b, h = s.local(x, y, z)
+        if h > 0.0 and abs(a) <= s.half_u and abs(b) <= s.half_w:
+            return z - h / s.nz if s.nz > 1e-6 else z - h   # the plane under (x, y)
+        return 0.0
+
+    def pad_state(self, t_s: float | None = None) -> PadState:
+        """The pad (deck frame: pad centre on its top, hull axes) at ``t_s``, default now (the
+        state every contact sub-step used last; the sensors' deck pose)."""
+        if t_s is not None:
+            return self.deck_motion.pad_state(t_s)
+        ps = self._pad_now
+        if ps is None:
+            ps = self._pad_now = self.deck_motion.pad_state(self.t_s)
+        return ps
 
     def active_faults(self, t_s: float | None = None) -> tuple[str, ...]:
         """Types of the scenario faults active at ``t_s`` (default now), for logging."""
@@ -260,8 +372,29 @@ class World:
             return ()
         return self.faults.active(self.t_s if t_s is None else t_s)
 
+    def place_on_surface(self) -> None:
+        """Rest the vehicle level on the surface below it (gear at its static deflection),
+        still, motors off; the touchdown monitor watches from its first lift-off on (no
+        touchdown at the start). For a firmware's own take-off (PX4 in the loop)."""
+        v = self.vehicle
+        p = self.params
+        surf = self._surface_below(v.x, v.y, v.z + 1e3)
+        sag = p.mass_kg * p.gravity_mps2 / p.contact.stiffness_n_per_m
+        v.set_attitude(0.0, 0.0, v.yaw)
+        v.z = surf + p.gear.height_m - sag
+        v.vx = v.vy = v.vz = 0.0
+        v.ax = v.ay = v.az = 0.0
+        v.f1 = v.f2 = v.f3 = v.f4 = 0.0
+        v.reset_attitude_loop()
+        self._watching = False
+        v.monitor = None
+        if surf == 0.0:
+            self.resting_on = self.ground.kind
+        else:
+            self.resting_on = 'pad' if self._over_pad_now() else 'deck'
+
     def step(self, dt_s: float) -> None:
-        """Advance the physics by dt_s, in sub-steps of at most ``physics_dt_s``."""
+        """Advance the physics by dt_s, in ticks of at most ``physics_dt_s``."""
         if dt_s == self.physics_dt_s:   # the runner's case (a float equal to a float)
             self._substep(dt_s)
             return
@@ -273,25 +406,38 @@ class World:
         for _ in range(n):
             self._substep(h)
 
-    def _over_pad(self, x: float, y: float, t_s: float) -> bool:
-        cx, cy, _, _, _ = self.deck.state(t_s)
-        d = self.deck
-        return abs(x - cx) <= d.half_x and abs(y - cy) <= d.half_y
+    def _set_deck(self, t_s: float) -> None:
+        """The deck at ``t_s``: the contact surface's pose and velocity (and the state the
+        sensors read while ``t_s`` is now)."""
+        s = self.deck_surface
+        deck = self.deck
+        if deck is not None:
+            dk = deck.state(t_s)
+            self._deck_now = dk
+            s.cx, s.cy, s.cz = dk[0], dk[1], dk[2]
+            s.vx, s.vy, s.vz = deck.drift_x, deck.drift_y, dk[3]
+            self._pad_now = None
+            return
+        ps = self.deck_motion.pad_state(t_s)
+        self._pad_now = ps
+        r = ps.rotation
+        s.set_pose(ps.position_m, (r[0][2], r[1][2], r[2][2]), (r[0][0], r[1][0], r[2][0]),
+                   ps.velocity_mps, ps.omega_radps)
 
     def _substep(self, h: float) -> None:
-        t = self.t_s + h
-        deck = self.deck
-        # the deck at the end of the sub-step: contact and the resting constraint must agree
-        # with truth() at the new time (the half-step offset for z_p of (4) is immaterial)
-        dk = deck.state(t)
-        cx, cy, ztop, dvz, daz = dk
+        """One physics tick of h: the autopilot, the wind, the vehicle (contact sub-steps,
+        each with the deck at its time), then the deck at the new time."""
+        t0 = self.t_s
         v = self.vehicle
-        p = self.params
         ap = self.autopilot
         if ap is not None and ap.active:
             if self.link is not None:
-                self.link.deliver_due(self.t_s)
-            ap.tick(self.t_s, self)
+                self.link.deliver_due(t0)
+            ap.tick(t0, self)
+            if ap.failsafes:
+                fs_now = ap.failsafe
+                if fs_now is not None:
+                    self.last_failsafe = fs_now
         # wind: mean + OU gusts, updated every GUST_UPDATE_S with the exact discretisation
         # g ← a g + σ √(1−a²) n, a = exp(−Δt/τ) (zero-order hold in between)
         g = self.gust
@@ -308,74 +454,85 @@ class World:
                 g[0] = a * g[0] + q * n()
                 g[1] = a * g[1] + q * n()
                 g[2] = a * g[2] + q * self._gust_vratio * n()
-        x0, y0 = v.x, v.y
-        ox, oy = x0 - cx, y0 - cy
-        hx, hy = deck.half_x, deck.half_y
-        surface = ztop if (-hx <= ox <= hx and -hy <= oy <= hy and v.z > ztop) else 0.0
         fs = self.faults
         wmx, wmy = self.wind_mean
-        if fs is None:
-            v.step(h, surface, wmx + g[0], wmy + g[1], g[2])
-        else:
+        wx, wy, wz = wmx + g[0], wmy + g[1], g[2]
+        if fs is not None:
             if fs.pending:
-                fs.update_height(self.t_s, v.z - surface)
-            wx, wy, wz = wmx + g[0], wmy + g[1], g[2]
+                fs.update_height(t0, v.z - self._surface_below(v.x, v.y, v.z))
             if fs.wind:
-                ws = fs.wind_step(self.t_s)
+                ws = fs.wind_step(t0)
                 if ws is not None:
                     wx, wy, wz = wx + ws[0], wy + ws[1], wz + ws[2]
-            v.step(h, surface, wx, wy, wz)
+        v.armed = self.armed
+        n_sub = v.begin(h, wx, wy, wz)
+        if n_sub == 1:
+            v.substep(h, t0)
+        else:
+            hs = h / n_sub
+            for k in range(n_sub):
+                if k > 0:
+                    self._set_deck(t0 + k * hs)
+                v.substep(hs, t0 + k * hs)
+        v.finish(h)
         thrust = v.f1 + v.f2 + v.f3 + v.f4
         if thrust > self.max_thrust_n:
             self.max_thrust_n = thrust
+        t = t0 + h
         self.t_s = t
-        self._deck_now = dk
-        resting = self.resting_on
-        if resting is None:
-            gear_z = v.z - p.gear_height_m
-            if gear_z > ztop and gear_z > 0.0:
-                return
-            gw = p.gear_half_width_m
-            ox, oy = v.x - cx, v.y - cy
-            kind = None
-            if abs(ox) < hx + gw and abs(oy) < hy + gw and gear_z <= ztop:
-                kind = 'pad' if (abs(ox) <= hx - gw and abs(oy) <= hy - gw) else 'edge'
-            elif gear_z <= 0.0:
-                kind = 'ground'
-            if kind is None:
-                return
-            self._touchdown(kind, t)
-            resting = kind
-        # resting on a surface: the contact constraint overrides the free-flight state
-        if resting == 'ground':
-            sz, svz, saz, svx, svy = 0.0, 0.0, 0.0, 0.0, 0.0
-        else:
-            sz, svz, saz, svx, svy = ztop, dvz, daz, deck.drift_x, deck.drift_y
-        if resting != 'edge' and v.az > saz + LIFTOFF_MARGIN_MPS2:
+        self._set_deck(t)
+        # resting: enough gear points down on one surface (the land detector's "landed")
+        c = v.contact
+        if c.n_active == 0:
             self.resting_on = None
-            if v.z < sz + p.gear_height_m:
-                v.z = sz + p.gear_height_m
-                v.vz = max(v.vz, svz)
-            return
-        v.z = sz + p.gear_height_m
-        v.vz, v.az = svz, saz
-        v.x, v.y = x0 + svx * h, y0 + svy * h
-        v.vx, v.vy, v.ax, v.ay = svx, svy, 0.0, 0.0
-        v.roll = v.pitch = 0.0
-        v.roll_rate = v.pitch_rate = v.yaw_rate = 0.0
-        v.reset_attitude_loop()
+            if not self._watching:
+                self._watching = True
+                v.monitor = self.monitor
+        else:
+            need = 3 if c.n_gear >= 3 else c.n_gear
+            counts = c.n_gear_contacts
+            if counts[0] >= need:
+                self.resting_on = 'pad' if self._over_pad_now() else 'deck'
+            elif counts[1] >= need:
+                self.resting_on = self.ground.kind
+            else:
+                self.resting_on = None
+        if self._contact is None and self.monitor.first is not None:
+            self._contact = self._first_contact()
 
-    def _touchdown(self, kind: str, t: float) -> None:
+    def _over_pad_now(self) -> bool:
         v = self.vehicle
-        cx, cy, _, dvz, _ = self.deck.state(t)
-        svz = 0.0 if kind == 'ground' else dvz
-        tilt = math.acos(max(-1.0, min(1.0, math.cos(v.roll) * math.cos(v.pitch))))
-        if self.contact is None:
-            self.contact = ContactEvent(
-                kind=kind, t_s=t, touchdown_speed_mps=abs(v.vz - svz),
-                horizontal_error_m=math.hypot(v.x - cx, v.y - cy), tilt_rad=tilt,
-                vehicle_vz_mps=v.vz, surface_vz_mps=svz, position_m=(v.x, v.y, v.z))
-        self.resting_on = kind
+        if self.ship is None:
+            cx, cy, _, _, _ = self._deck_now
+            return abs(v.x - cx) <= self.pad_half_x and abs(v.y - cy) <= self.pad_half_y
+        x, y, _ = self.pad_state().to_deck((v.x, v.y, v.z))
+        return abs(x) <= self.pad_half_x and abs(y) <= self.pad_half_y
+
+    def _first_contact(self) -> ContactEvent:
+        f = self.monitor.first
+        assert f is not None
+        v = self.vehicle
+        svz = self.deck_surface.vz if f.surface in ('pad', 'deck', 'edge') else 0.0
+        rec = self.monitor.record(v.body)
+        return ContactEvent(kind=f.surface, t_s=f.t_s, touchdown_speed_mps=f.normal_speed_mps,
+                            horizontal_error_m=rec.horizontal_error_m, tilt_rad=f.tilt_rad,
+                            vehicle_vz_mps=v.vz, surface_vz_mps=svz,
+                            position_m=(v.x, v.y, v.z), lateral_speed_mps=f.lateral_speed_mps)
+
+    @property
+    def contact(self) -> ContactEvent | None:
+        """The first contact of the landing, or None."""
+        return self._contact
+
+    @property
+    def landing_done(self) -> bool:
+        """The landing can be scored: settled (disarmed, still), or a crash no later event
+        can undo (:attr:`TouchdownMonitor.done`)."""
+        return self.monitor.done
+
+    def landing_record(self) -> LandingRecord:
+        """The touchdown monitor's record now, with the scenario's outcome rules applied."""
+        return self.monitor.record(self.vehicle.body)
 
     # --- sensors -----------------------------------------------------------------------------
 
@@ -397,7 +554,7 @@ class World:
         cam = (v.x - v.vx * lat + r[0][0] * ox + r[0][1] * oy + r[0][2] * oz,
                v.y - v.vy * lat + r[1][0] * ox + r[1][1] * oy + r[1][2] * oz,
                v.z - v.vz * lat + r[2][0] * ox + r[2][1] * oy + r[2][2] * oz)
-        cx, cy, ztop, _, _ = self.deck.state(stamp)
+        cx, cy, ztop = self._beacon_at(stamp)
         fs = self.faults
         if fs is None or not fs.has_camera:
             return stamp, self.camera.frame(stamp, cam, r, (cx, cy, ztop))
@@ -413,8 +570,16 @@ class World:
             return stamp, []
         return stamp, blocks
 
+    def _beacon_at(self, t_s: float) -> tuple[float, float, float]:
+        """The beacon (pad centre on its top) at ``t_s``."""
+        if self.deck is not None:
+            cx, cy, ztop, _, _ = self.deck.state(t_s)
+            return cx, cy, ztop
+        return self.deck_motion.pad_state(t_s).position_m
+
     def true_lidar_range(self) -> float | None:
-        """The lidar's true range now (:func:`~deck_simulator.sensors.lidar_true_range`).
+        """The lidar's true range now (:func:`~deck_simulator.sensors.lidar_true_range`;
+        on a ship: to the tilted deck, else the sea).
 
         Only the third column of R = :func:`rot_body_to_world` is needed (the ray is
         −R e3), computed with the same expressions (so the same bits) without the rest of
@@ -424,11 +589,32 @@ class World:
         cr, sr = math.cos(roll), math.sin(roll)
         cp, sp = math.cos(pitch), math.sin(pitch)
         cy, sy = math.cos(yaw), math.sin(yaw)
+        dx, dy, dz = -(cy * sp * cr + sy * sr), -(sy * sp * cr - cy * sr), -(cp * cr)
+        if self.ship is not None:
+            return self._ray_to_deck(v.x, v.y, v.z, dx, dy, dz)
         dcx, dcy, ztop, _, _ = self._deck_now
-        d = self.deck
-        return lidar_range_along(v.x, v.y, v.z, -(cy * sp * cr + sy * sr),
-                                 -(sy * sp * cr - cy * sr), -(cp * cr), dcx, dcy, ztop,
-                                 d.half_x, d.half_y)
+        return lidar_range_along(v.x, v.y, v.z, dx, dy, dz, dcx, dcy, ztop, self.pad_half_x,
+                                 self.pad_half_y)
+
+    def _ray_to_deck(self, x: float, y: float, z: float, dx: float, dy: float,
+                     dz: float) -> float | None:
+        """Range along the unit direction from (x, y, z) to the deck's top (its rectangle,
+        tilted and moving: the pose now), else to the sea (z = 0); None pointing up."""
+        s = self.deck_surface
+        ox, oy, oz = x - s.cx, y - s.cy, z - s.cz
+        hn = ox * s.nx + oy * s.ny + oz * s.nz
+        dn = dx * s.nx + dy * s.ny + dz * s.nz
+        if hn > 0.0 and dn < -1e-9:
+            r = hn / -dn
+            px, py, pz = ox + r * dx, oy + r * dy, oz + r * dz
+            if (abs(px * s.ux + py * s.uy + pz * s.uz) <= s.half_u
+                    and abs(px * s.wx + py * s.wy + pz * s.wz) <= s.half_w):
+                return r
+        if dz >= -1e-9:
+            return None
+        if z <= 0.0:
+            return 0.0
+        return z / -dz
 
     def read_lidar(self) -> float | None:
         """LidarLite range along body −z (m), None when there is no valid return."""
@@ -464,11 +650,23 @@ class World:
 
     def truth(self) -> Truth:
         v = self.vehicle
-        d = self.deck
         t = self.t_s
-        cx, cy, ztop, dvz, daz = self._deck_now
-        over = abs(v.x - cx) <= d.half_x and abs(v.y - cy) <= d.half_y
-        surface = ztop if over and v.z > ztop else 0.0
+        d = self.deck
+        if d is not None:
+            cx, cy, ztop, dvz, daz = self._deck_now
+            over = abs(v.x - cx) <= self.pad_half_x and abs(v.y - cy) <= self.pad_half_y
+            surface = ztop if over and v.z > ztop else 0.0
+            beacon = (cx, cy, ztop)
+            dvel = (d.drift_x, d.drift_y)
+            rpy = (0.0, 0.0, 0.0)
+        else:
+            ps = self.pad_state()
+            beacon = ps.position_m
+            ztop, dvz, daz = beacon[2], ps.velocity_mps[2], ps.accel_mps2[2]
+            over = self._over_pad_now()
+            surface = self._surface_below(v.x, v.y, v.z)
+            dvel = (ps.velocity_mps[0], ps.velocity_mps[1])
+            rpy = ps.rpy_rad
         g = self.gust
         wind = (self.wind_mean[0] + g[0], self.wind_mean[1] + g[1], g[2])
         if self.faults is not None and self.faults.wind:
@@ -479,37 +677,29 @@ class World:
             t_s=t, position_m=(v.x, v.y, v.z), velocity_mps=(v.vx, v.vy, v.vz),
             accel_mps2=(v.ax, v.ay, v.az), roll_rad=v.roll, pitch_rad=v.pitch, yaw_rad=v.yaw,
             euler_rates_radps=(v.roll_rate, v.pitch_rate, v.yaw_rate),
-            beacon_position_m=(cx, cy, ztop), deck_height_m=ztop, deck_vz_mps=dvz,
-            deck_az_mps2=daz, deck_velocity_mps=(d.drift_x, d.drift_y), over_pad=over,
+            beacon_position_m=beacon, deck_height_m=ztop, deck_vz_mps=dvz,
+            deck_az_mps2=daz, deck_velocity_mps=dvel, over_pad=over,
             surface_height_m=surface, height_above_surface_m=v.z - surface,
-            gamma=self.params.gamma(v.z + self.params.rotor_height_m - surface),
-            thrust_n=v.thrust_n,
-            wind_mps=wind,
-            resting_on=self.resting_on)
+            gamma=v.gamma, thrust_n=v.thrust_n, wind_mps=wind, resting_on=self.resting_on,
+            deck_rpy_rad=rpy, armed=self.armed)
 
     def outcome(self) -> Outcome:
-        sc = self.scenario
-        c = self.contact
-        if c is None:
+        """The landing record mapped to the runner's outcome fields."""
+        rec = self.landing_record()
+        f = rec.first
+        if f is None:
             v = self.vehicle
-            cx, cy, _, _, _ = self.deck.state(self.t_s)
-            return Outcome(False, False, False, 'none', self.t_s,
-                           math.hypot(v.x - cx, v.y - cy), 0.0,
-                           math.acos(max(-1.0, min(1.0, math.cos(v.roll) * math.cos(v.pitch)))),
-                           self.max_thrust_n, 'no contact')
-        reasons = []
-        if c.kind == 'edge':
-            reasons.append('edge strike')
-        if c.touchdown_speed_mps > sc.crash_speed_mps:
-            reasons.append(f'touchdown speed {c.touchdown_speed_mps:.2f} m/s > '
-                           f'{sc.crash_speed_mps:.2f}')
-        if c.tilt_rad > sc.max_tilt_rad:
-            reasons.append(f'tilt {c.tilt_rad:.2f} rad > {sc.max_tilt_rad:.2f}')
-        crash = bool(reasons)
-        if not reasons:
-            reasons.append('landed on deck' if c.kind == 'pad' else 'landed on the ground')
-        return Outcome(landed_on_deck=c.kind == 'pad' and not crash, crash=crash,
-                       fallback=c.kind == 'ground', contact_kind=c.kind, t_s=c.t_s,
-                       horizontal_error_m=c.horizontal_error_m,
-                       touchdown_speed_mps=c.touchdown_speed_mps, tilt_rad=c.tilt_rad,
-                       max_thrust_n=self.max_thrust_n, reason='; '.join(reasons))
+            b = v.body
+            tilt = math.acos(max(-1.0, min(1.0, b.r22)))
+            return Outcome(False, False, False, 'none', self.t_s, rec.horizontal_error_m, 0.0,
+                           tilt, self.max_thrust_n, 'no contact')
+        return Outcome(
+            landed_on_deck=rec.outcome == 'deck', crash=rec.crash,
+            fallback=rec.outcome == 'fallback', contact_kind=f.surface, t_s=f.t_s,
+            horizontal_error_m=rec.horizontal_error_m, touchdown_speed_mps=f.normal_speed_mps,
+            tilt_rad=f.tilt_rad, max_thrust_n=self.max_thrust_n,
+            reason='; '.join(rec.reasons), landing=rec.outcome,
+            lateral_speed_mps=f.lateral_speed_mps, impacts=len(rec.impacts),
+            max_impact_speed_mps=max(i.normal_speed_mps for i in rec.impacts),
+            bounces=rec.bounces, max_bounce_height_m=rec.max_bounce_height_m,
+            settled=rec.settled)

@@ -488,7 +488,7 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
             t0_wall, t0 = time.time(), time.monotonic()
             ticks0 = {n: read_cpu_ticks(pid) for n, pid in pids.items()}
             tap0 = read_cpu_ticks(tap.pid)
-            px4_cpu0 = px4.px4.cpu_s() if px4 is not None else 0.0
+            px4_cpu0 = px4.cpu_s() if px4 is not None else 0.0
             triggered, outcome_at = False, None
             while time.monotonic() - t0 < args.duration:
                 orch.check()
@@ -506,7 +506,7 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
             t1_wall, wall = time.time(), time.monotonic() - t0
             ticks1 = {n: read_cpu_ticks(pid) for n, pid in pids.items()}
             tap1 = read_cpu_ticks(tap.pid)
-            px4_cpu = (round(100.0 * (px4.px4.cpu_s() - px4_cpu0) / wall, 1)
+            px4_cpu = (round(100.0 * (px4.cpu_s() - px4_cpu0) / wall, 1)
                        if px4 is not None else None)
             crashed = list(orch.crashed)
             outcome = monitor.outcome
@@ -532,7 +532,7 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
         'landing': None if outcome is None else {
             k: outcome.get(k) for k in ('success', 'reason', 'time_to_land_s')},
         'crashed_nodes': [{'node': n, 'status': c} for n, c in crashed],
-        'autopilot': 'emulator' if px4 is None else 'px4-sitl',
+        'autopilot': getattr(args, 'autopilot', 'emulator'),
         'autopilot_cpu_percent': px4_cpu,
         'log': log_path,
         'machine': {'cpus': os.cpu_count(), 'loadavg_1min_before': load0[0],
@@ -545,13 +545,14 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
 
 
 def _px4_for_bench(args: argparse.Namespace):
-    """``--autopilot px4-sitl``: PX4 SITL started for the bench (deckland.sitl.mission)."""
-    if getattr(args, 'autopilot', 'emulator') != 'px4-sitl':
+    """``--autopilot NAME``: the firmware started for the bench (deckland.sitl registry)."""
+    from deckland.sitl import sitl_autopilot
+    backend = sitl_autopilot(getattr(args, 'autopilot', 'emulator'))
+    if backend is None:
         return None
     from deck_simulator.scenario import load_scenario
 
-    from deckland.sitl.mission import Px4Mission
-    px4 = Px4Mission(load_scenario(args.scenario))
+    px4 = backend.load('mission')(load_scenario(args.scenario))
     px4.start()
     return px4
 
@@ -559,8 +560,6 @@ def _px4_for_bench(args: argparse.Namespace):
 def _px4_up(px4, monitor, args: argparse.Namespace, out) -> list[str]:
     """PX4 up, the ground topics, the operator's take-off: the graph then flies as with the
     emulator (the window starts in PX4's loiter). Returns what did not come up."""
-    from deckland.sitl.mission import operator_take_off
-
     def log(text: str) -> None:
         out.write(f'{text}\n')
 
@@ -568,7 +567,7 @@ def _px4_up(px4, monitor, args: argparse.Namespace, out) -> list[str]:
     silent = [] if ok else [msg]
     silent = silent or monitor.wait_flowing(args.startup_timeout, skip=px4.GROUND_SILENT)
     if not silent:
-        ok, msg = operator_take_off(px4, monitor, log)
+        ok, msg = px4.operator_take_off(monitor, log)
         silent = [] if ok else [msg]
     return silent
 
@@ -578,10 +577,10 @@ def _cmd_latency(args: argparse.Namespace) -> int:
         print('deckland bench latency: --duration must be a positive number of seconds',
               file=sys.stderr)
         return 2
-    from deckland.sitl.px4 import Px4NotFoundError, Px4StartError
+    from deckland.sitl import SitlNotFoundError, SitlStartError
     try:
         status, report = run_latency_bench(args)
-    except (Px4NotFoundError, Px4StartError) as exc:
+    except (SitlNotFoundError, SitlStartError) as exc:
         print(f'deckland bench latency: {exc}', file=sys.stderr)
         return 2
     if not report:
@@ -621,9 +620,10 @@ def register(sub) -> None:
     lat.add_argument('--graph', help='graph YAML (default: the packaged graph)')
     lat.add_argument('--log', help='node output log (default: a file in a temp directory)')
     lat.add_argument('--startup-timeout', type=float, default=40.0)
-    lat.add_argument('--autopilot', choices=('emulator', 'px4-sitl'), default='emulator',
-                     help='px4-sitl: PX4 SITL flies the simulated vehicle (it takes off first; '
-                     'PX4 CPU in autopilot_cpu_percent)')
+    from deckland.sitl import SITL_AUTOPILOTS
+    lat.add_argument('--autopilot', choices=('emulator', *SITL_AUTOPILOTS), default='emulator',
+                     help='a firmware (e.g. px4-sitl) flies the simulated vehicle (it takes '
+                     'off first; its CPU in autopilot_cpu_percent)')
     lat.set_defaults(func=_cmd_latency)
 
 

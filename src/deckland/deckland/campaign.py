@@ -7,7 +7,12 @@ The campaign JSON is a stable interface (other tools read it)::
      "time_to_land_s": {"p50", "p95"}, "wall_time_s", "realtime_factor",
      "workers", "realtime_factor_per_worker", "backend", "cores",
      "failures": [{"seed", "reason", "outcome"}],
-     "outcomes": {"deck", "fallback", "hold", "crash", "unstable"}}
+     "outcomes": {"deck", "failed", "fallback", "hold", "crash", "unstable"},
+     "success_ci95": [lo, hi],
+     "first_contact": {"runs", "normal_speed_mps": {"p50", "p95", "max"},
+                       "lateral_speed_mps": {...}, "tilt_rad": {...}},
+     "impacts": {"runs_with_later_impacts", "later_impacts", "max_speed_mps": {...}},
+     "bounces": {"runs", "total", "max_height_m": {...}}, "settled_rate"}
 
 ``realtime_factor`` is simulated seconds per wall-clock second over the whole campaign (all
 workers); ``realtime_factor_per_worker`` divides it by the worker processes used. ``cores`` is
@@ -15,12 +20,18 @@ workers); ``realtime_factor_per_worker`` divides it by the worker processes used
 results), ``'python'`` otherwise. ``backend`` is where the runs flew (``'local'`` process pool or
 ``'ray'``, `deckland.backends`); no key but `HOW_RUN_KEYS` depends on how the runs were flown.
 
-``outcomes`` counts the runs of each safety class (``deck_simulator.outcome.classify``,
-docs/failsafe.md); a failure's ``outcome`` is its class.
+``outcomes`` counts the runs of each class (``deck_simulator.outcome.classify``,
+docs/failsafe.md); a failure's ``outcome`` is its class. ``success_ci95`` is the 95 % Wilson
+interval of the success rate (a success is a landing that kept every rule of
+docs/world/contact.md). The landing figures are uncensored: ``first_contact`` is taken over
+every run that touched anything (relative normal and lateral speed, relative tilt),
+``impacts`` counts the impacts after the first and gives each run's fastest impact,
+``bounces`` the runs that bounced and the highest hop of each, ``settled_rate`` the share of
+those runs that came to rest. ``horizontal_error_m`` and ``touchdown_speed_mps`` stay over the
+successful landings only.
 
 Run ``i`` of a campaign with seed ``S`` flies seed ``S * 100000 + i``; any failure listed in the
 report is reproduced alone with ``deckland sim --scenario NAME --seed <that seed>``.
-Touchdown statistics are taken over the runs that touched down on the pad.
 """
 
 from __future__ import annotations
@@ -33,13 +44,15 @@ import sys
 import time
 from typing import Any
 
-from deckland_common.stats import percentile
+from deckland_common.stats import percentile, wilson_interval
 
 from deckland import accel, backends
 from deckland.backends import CampaignError, Chunk, LocalPool, RayBackend
 from deckland.runner import CONTROLLERS, RunConfig, RunResult, run_landing
 
 SEED_STRIDE = 100_000
+#: the run classes counted in a report (deck_simulator.outcome.classify)
+OUTCOMES = ('deck', 'failed', 'fallback', 'hold', 'crash', 'unstable')
 
 #: Report keys that say how a campaign was run, not what was flown: two reports of the same
 #: scenario, controller and seeds are identical but for these, whatever backend flew them.
@@ -63,8 +76,12 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
     on_pad = [r for r in results if r.landed_on_deck]
     errors = [r.horizontal_error_m for r in on_pad]
     speeds = [r.touchdown_speed_mps for r in on_pad]
-    times = [r.time_to_land_s for r in results if r.contact_kind != 'none']
+    touched = [r for r in results if r.contact_kind != 'none']
+    times = [r.time_to_land_s for r in touched]
     sim_time = sum(r.sim_time_s for r in results)
+    successes = sum(r.success for r in results)
+    lo, hi = wilson_interval(successes, n)
+    bounced = [r for r in touched if r.bounces > 0]
 
     def stats(xs, keys=('p50', 'p95', 'max')):
         out = {}
@@ -79,7 +96,7 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
         'controller': controller,
         'runs': n,
         'seed': seed,
-        'success_rate': sum(r.success for r in results) / n if n else 0.0,
+        'success_rate': successes / n if n else 0.0,
         'fallback_rate': sum(r.fallback for r in results) / n if n else 0.0,
         'crash_rate': sum(r.crash for r in results) / n if n else 0.0,
         'horizontal_error_m': stats(errors),
@@ -96,8 +113,25 @@ def summarize(results: list[RunResult], scenario: str, controller: str, seed: in
         'cores': cores or accel.cores(),
         'failures': [{'seed': r.seed, 'reason': r.reason, 'outcome': r.outcome}
                      for r in results if not r.success],
-        'outcomes': {k: sum(r.outcome == k for r in results)
-                     for k in ('deck', 'fallback', 'hold', 'crash', 'unstable')},
+        'outcomes': {k: sum(r.outcome == k for r in results) for k in OUTCOMES},
+        'success_ci95': [round(lo, 4), round(hi, 4)],
+        'first_contact': {
+            'runs': len(touched),
+            'normal_speed_mps': stats([r.touchdown_speed_mps for r in touched]),
+            'lateral_speed_mps': stats([r.lateral_speed_mps for r in touched]),
+            'tilt_rad': stats([r.tilt_rad for r in touched]),
+        },
+        'impacts': {
+            'runs_with_later_impacts': sum(r.impacts > 1 for r in touched),
+            'later_impacts': sum(max(0, r.impacts - 1) for r in touched),
+            'max_speed_mps': stats([r.max_impact_speed_mps for r in touched]),
+        },
+        'bounces': {
+            'runs': len(bounced),
+            'total': sum(r.bounces for r in touched),
+            'max_height_m': stats([r.max_bounce_height_m for r in bounced]),
+        },
+        'settled_rate': (sum(r.settled for r in touched) / len(touched)) if touched else 0.0,
     }
 
 
@@ -180,8 +214,20 @@ def format_table(reports: list[dict[str, Any]]) -> str:
     """Side-by-side summary of one or more campaign reports."""
     rows = [
         ('success', lambda r: f'{100 * r["success_rate"]:.1f} %'),
+        ('  95 % interval', lambda r: '{:.1f}-{:.1f} %'.format(*(100 * x for x in
+                                                                 r['success_ci95']))),
+        ('failed', lambda r: f'{100 * r["outcomes"]["failed"] / max(1, r["runs"]):.1f} %'),
         ('fallback', lambda r: f'{100 * r["fallback_rate"]:.1f} %'),
         ('crash', lambda r: f'{100 * r["crash_rate"]:.1f} %'),
+        ('1st contact runs', lambda r: f'{r["first_contact"]["runs"]}'),
+        ('1st normal p95 [m/s]', lambda r: _fmt(r['first_contact']['normal_speed_mps']['p95'])),
+        ('1st normal max [m/s]', lambda r: _fmt(r['first_contact']['normal_speed_mps']['max'])),
+        ('1st lateral p95 [m/s]',
+         lambda r: _fmt(r['first_contact']['lateral_speed_mps']['p95'])),
+        ('1st tilt p95 [deg]', lambda r: _fmt_deg(r['first_contact']['tilt_rad']['p95'])),
+        ('later impacts (runs)', lambda r: f'{r["impacts"]["runs_with_later_impacts"]}'),
+        ('bounces (runs)', lambda r: f'{r["bounces"]["runs"]}'),
+        ('settled', lambda r: f'{100 * r["settled_rate"]:.1f} %'),
         ('error p50 [m]', lambda r: _fmt(r['horizontal_error_m']['p50'])),
         ('error p95 [m]', lambda r: _fmt(r['horizontal_error_m']['p95'])),
         ('error max [m]', lambda r: _fmt(r['horizontal_error_m']['max'])),
@@ -205,6 +251,10 @@ def format_table(reports: list[dict[str, Any]]) -> str:
 
 def _fmt(x, digits=3) -> str:
     return '-' if x is None else f'{x:.{digits}f}'
+
+
+def _fmt_deg(x) -> str:
+    return '-' if x is None else f'{math.degrees(x):.1f}'
 
 
 def write_plots(per_controller: dict[str, list[RunResult]], out_dir: pathlib.Path,
@@ -236,7 +286,7 @@ def write_plots(per_controller: dict[str, list[RunResult]], out_dir: pathlib.Pat
 
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
-    if args.autopilot in ('px4-sitl', 'ardupilot-sitl'):   # the graph through SITL, in turn
+    if args.autopilot != 'in-process':   # the graph through a firmware, one mission at a time
         from deckland.sitl.campaign import cmd_sitl_campaign
         return cmd_sitl_campaign(args)
     controllers = list(CONTROLLERS) if args.compare else [args.controller]

@@ -41,7 +41,8 @@ class RunConfig:
     physics_hz: int = 400
     control_hz: int = 100
     camera_hz: int = 50
-    settle_after_contact_s: float = 3.0   # end of run: LANDED (disarm) or this long after contact
+    # end of run: the landing scored (settled or crashed) or this long after the first contact
+    settle_after_contact_s: float = 10.0
     record: bool = False
     surface_accel_ff: bool = False
     dob_overrides: tuple[tuple[str, float], ...] = ()
@@ -109,7 +110,7 @@ def make_altitude_controller(config: RunConfig, vehicle: VehicleDescription | No
 
 def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
     """The planner is told only what an operator knows: where the landing area is."""
-    ax, ay = scenario.apron.position_m
+    ax, ay = scenario.landing_area_m
     profile = 'constant_rate' if config.controller == 'constant-rate' else 'deck_relative'
     return PlannerParams(landing_area_m=(float(ax), float(ay)), descent_profile=profile,
                          **dict(config.planner_overrides))
@@ -155,6 +156,7 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     started = False
     settle_s = config.settle_after_contact_s
     landed = Mode.LANDED
+    disarmed = False
     enabled = True
     # bound once: the loop below runs physics_hz times per simulated second
     world_step = world.step
@@ -222,10 +224,14 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                 truth = world.truth()
                 _record(trace, t, pos, truth, apron.vertical, apron, tick.output,
                         alt_out or altitude.last_output, modes.index(mode))
+            if mode is landed and not disarmed:
+                # the bridge asks the autopilot to disarm once the planner has landed, again
+                # until it is accepted (PX4 refuses in the air; its land detector disarms too)
+                disarmed = world.disarm(t) or not world.armed
         world_step(dt)
         if t_contact is None and world.contact is not None:
             t_contact = world.t_s
-        if t_contact is not None and (world.t_s - t_contact >= settle_s or mode is landed):
+        if t_contact is not None and (world.landing_done or world.t_s - t_contact >= settle_s):
             break
 
     rec = landing_outcome(world, seed, 0.0, planner.planner.searches, mode.name,

@@ -296,6 +296,17 @@ def summary_lines(report: dict[str, Any], code: int, record: str | None) -> list
         f'horizontal error  {_fmt(report.get("horizontal_error_m"), "m", 3)}',
         f'time to land      {_fmt(report.get("time_to_land_s"), "s", 1)}',
     ]
+    if report.get('outcome'):     # the landing record (deck_simulator.outcome, campaigns')
+        lines.insert(2, f'class             {report["outcome"]}'
+                     + (' (settled)' if report.get('settled') else ''))
+    if report.get('contact_kind') not in (None, 'none'):
+        tilt = report.get('tilt_rad')
+        tilt_deg = math.degrees(tilt) if isinstance(tilt, int | float) else None
+        lines += [f'lateral speed     {_fmt(report.get("lateral_speed_mps"), "m/s")}',
+                  f'relative tilt     {_fmt(tilt_deg, "deg", 1)}',
+                  f'impacts, bounces  {report.get("impacts", 0)}, {report.get("bounces", 0)} '
+                  f'(fastest {_fmt(report.get("max_impact_speed_mps"), "m/s")}, highest hop '
+                  f'{_fmt(report.get("max_bounce_height_m"), "m", 3)})']
     if report.get('autopilot_modes'):
         lines.append('autopilot modes   ' + ' -> '.join(m['mode'] for m in
                                                         report['autopilot_modes']))
@@ -327,10 +338,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
     hardware = bool(args.hardware)
     if hardware and not (args.mavlink and args.pixy_port):
         return fail('--hardware needs --mavlink URL and --pixy-port DEV')
-    firmware = getattr(args, 'autopilot', 'emulator')
-    use_px4 = firmware in ('px4-sitl', 'ardupilot-sitl')
-    if use_px4 and (hardware or args.mavlink):
-        return fail(f'--autopilot {firmware} is a simulation (no --hardware, no --mavlink)')
+    from deckland.sitl import sitl_autopilot
+    backend = sitl_autopilot(getattr(args, 'autopilot', 'emulator'))
+    if backend is not None and (hardware or args.mavlink):
+        return fail(f'--autopilot {backend.name} is a simulation (no --hardware, no --mavlink)')
     if not hardware and any(getattr(args, k, None) is not None
                             for k in ('mass_kg', 'hover_thrust_norm', 'thrust_expo')):
         return fail('--mass-kg, --hover-thrust-norm and --thrust-expo are for --hardware '
@@ -346,14 +357,11 @@ def _cmd_up(args: argparse.Namespace) -> int:
         return fail(str(exc))
     nodes = graph['nodes']
     px4 = None
-    if use_px4:
-        from deckland.sitl.ardupilot import ArduPilotMission, ArduPilotNotFoundError
-        from deckland.sitl.mission import Px4Mission, operator_take_off
-        from deckland.sitl.px4 import Px4NotFoundError
+    if backend is not None:   # a firmware in the loop (deckland.sitl.SITL_AUTOPILOTS)
+        from deckland.sitl import SitlNotFoundError
         try:
-            px4 = (ArduPilotMission if firmware == 'ardupilot-sitl' else Px4Mission)(
-                scenario, keep_ulog=args.keep_ulog)
-        except (Px4NotFoundError, ArduPilotNotFoundError, ValueError) as exc:
+            px4 = backend.load('mission')(scenario, keep_ulog=args.keep_ulog)
+        except (SitlNotFoundError, ValueError) as exc:
             return fail(str(exc))
     names = {n.name for n in nodes}
     kills = node_kill_faults(scenario)
@@ -403,7 +411,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
                 result_code = 3
                 orch.log(report['reason'])
                 raise _EndRunError
-            orch.log(f'{px4.NAME} up after {px4.times["up_s"]:.1f} s')
+            orch.log(f'{backend.name} up after {px4.times["up_s"]:.1f} s')
         # on the ground the planner disables the thrust: the command topics flow once in
         # the air (PX4's take-off, below)
         silent = monitor.wait_flowing(args.startup_timeout, abort=startup_abort,
@@ -422,7 +430,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
             if record is not None:
                 recorder = _start_recorder(record, monitor, [
                     t for t in wait_topics if t not in px4.GROUND_SILENT], orch)
-            ok, msg = operator_take_off(px4, monitor, orch.log, stop_requested.is_set)
+            ok, msg = px4.operator_take_off(monitor, orch.log, stop_requested.is_set)
             if ok:
                 silent = monitor.wait_flowing(10.0, abort=startup_abort)
                 ok, msg = not silent, f'silent topics in the air {silent}'
@@ -441,8 +449,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         orch.log(f'offboard: {ok} {msg}')
         if px4 is not None and not px4.wait_mode(px4.OFFBOARD_MODE, 5.0,
                                                  stop_requested.is_set):
-            report = {'success': False, 'reason': f'{px4.NAME} did not enter '
-                      f'{px4.OFFBOARD_MODE} ({msg}; mode {px4.operator.mode})'}
+            report = {'success': False, 'reason': f'{backend.name} did not enter '
+                      f'{px4.OFFBOARD_MODE} ({msg}; mode {px4.mode})'}
             result_code = 4
             orch.log(report['reason'])
             raise _EndRunError
@@ -532,8 +540,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         report = _finish_report(report, args, hardware, orch, injected, modes, record,
                                 result_code)
         if px4_report is not None:
-            report['autopilot'] = firmware
-            report['px4' if firmware == 'px4-sitl' else 'ardupilot'] = px4_report
+            report['autopilot'] = backend.name
+            report[backend.report_key] = px4_report
         if record is not None:
             with contextlib.suppress(OSError):
                 record.mkdir(parents=True, exist_ok=True)
@@ -557,11 +565,10 @@ PX4_DISARM_WAIT_S = 20.0
 def _start_px4(px4, nodes, orch: Orchestrator) -> str:
     """PX4 SITL in a fresh directory, the graph pointed at its instance's ports; '' or why
     PX4 could not be started."""
-    from deckland.sitl.ardupilot import ArduPilotStartError
-    from deckland.sitl.px4 import Px4StartError
+    from deckland.sitl import SitlStartError
     try:
         px4.start()
-    except (Px4StartError, ArduPilotStartError, OSError) as exc:
+    except (SitlStartError, OSError) as exc:
         orch.log(f'{px4.NAME} did not start: {exc}')
         return f'{px4.NAME} did not start: {exc}'
     px4.configure_graph(nodes)
@@ -644,12 +651,11 @@ def register(sub) -> None:
     p.add_argument('--record', help='record a bag (and report.json) into this directory')
     p.add_argument('--timeout', type=float, default=120.0, help='mission timeout [s]')
     p.add_argument('--startup-timeout', type=float, default=40.0)
-    p.add_argument('--autopilot', choices=('emulator', 'px4-sitl', 'ardupilot-sitl'),
-                   default='emulator',
-                   help='what flies the simulated vehicle: the emulated PX4 (default), PX4 '
-                   'SITL from $DECKLAND_PX4_SITL / ../shared/px4-sitl (PX4 v1.16) or '
-                   'ArduCopter SITL from $DECKLAND_ARDUPILOT_SITL / ../shared/ardupilot-sitl '
-                   '(4.5.6, on deckland physics)')
+    from deckland.sitl import SITL_AUTOPILOTS
+    p.add_argument('--autopilot', choices=('emulator', *SITL_AUTOPILOTS), default='emulator',
+                   help='what flies the simulated vehicle: the emulated PX4 (default) or a '
+                   'firmware in the loop: ' + '; '.join(
+                       f'{a.name}: {a.help}' for a in SITL_AUTOPILOTS.values()))
     p.add_argument('--report', metavar='FILE',
                    help='write report.json here too (no bag needed; deckland campaign '
                    '--autopilot px4-sitl reads it)')

@@ -17,7 +17,7 @@ import math
 from deckland_common.contract import GRAVITY_MPS2, PAPER_MASS_KG
 
 from dob_altitude.ground_effect import ground_effect_gain
-from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection
+from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection, saturate
 
 #: Table 4 of the paper: controller gains K, Λ and observer gain Γ.
 PAPER_K = 0.85
@@ -203,14 +203,7 @@ class DobAltitudeController:
         m = self._m
         # (16): −K ė − K Λ e (e²+1)^(−1/2) = −K σ
         u_unsat = m / (gbar * c_ctrl) * (-self._k * sigma - zeta + ff - d_hat)
-        u = u_unsat
-        saturated = False
-        if u > self._umax:
-            u = self._umax
-            saturated = True
-        elif u < self._umin:
-            u = self._umin
-            saturated = True
+        u, saturated = saturate(u_unsat, self._umin, self._umax)
         if saturated:
             self.clamped['thrust'] += 1
 

@@ -25,7 +25,7 @@ from dob_altitude.dob import (
     hover_output,
 )
 from dob_altitude.ground_effect import ground_effect_gain
-from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection
+from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection, saturate
 
 
 @dataclass(frozen=True, slots=True)
@@ -184,14 +184,7 @@ class PidAltitudeController:
 
         i_term = p.ki * integral
         u_unsat = scale * (base - i_term)
-        u = u_unsat
-        saturated = False
-        if u > self._umax:
-            u = self._umax
-            saturated = True
-        elif u < self._umin:
-            u = self._umin
-            saturated = True
+        u, saturated = saturate(u_unsat, self._umin, self._umax)
         if saturated:
             self.clamped['thrust'] += 1
         self._u_prev = u

@@ -53,3 +53,12 @@ def input_rejection(inp: AltitudeInput, dt_s: float,
     if applied_thrust_n is not None:
         check += applied_thrust_n
     return None if math.isfinite(check) else 'nan'
+
+
+def saturate(u: float, lo: float, hi: float) -> tuple[float, bool]:
+    """``u`` clamped to [lo, hi] and whether it was (NaN passes through unclamped)."""
+    if u > hi:
+        return hi, True
+    if u < lo:
+        return lo, True
+    return u, False

@@ -25,6 +25,7 @@ import threading
 import time
 import weakref
 
+from deckland.sitl import SitlNotFoundError, SitlStartError
 from deckland.sitl.mission import Px4Mission as _Px4MissionBase
 from deckland.sitl.mission import _wait
 from deckland.sitl.px4 import _cleanup, _udp_free
@@ -44,11 +45,11 @@ MISSION_PARAMS: dict[str, float] = {'GUID_OPTIONS': 8, 'ARMING_CHECK': 0, 'ATC_A
 _REPO_ROOT = pathlib.Path(__file__).resolve().parents[4]
 
 
-class ArduPilotNotFoundError(RuntimeError):
+class ArduPilotNotFoundError(SitlNotFoundError):
     """No ``arducopter`` at ``$DECKLAND_ARDUPILOT_SITL`` or ``../shared/ardupilot-sitl``."""
 
 
-class ArduPilotStartError(RuntimeError):
+class ArduPilotStartError(SitlStartError):
     """ArduCopter did not come up (the message carries the end of its output)."""
 
 
@@ -357,6 +358,17 @@ JSON_RATE_HZ = 400
 #: link, where time is not stretched; ArduCopter's 1 Hz heartbeat is in its time too (a
 #: 3 s link timeout was crossed at 0.3x real time)
 BRIDGE_SITL_PARAMS = {'max_link_latency_s': 1.0, 'stop_after_s': 1.0, 'link_timeout_s': 8.0}
+def require_ardupilot() -> pathlib.Path:
+    """:func:`find_ardupilot`, or ArduPilotNotFoundError saying how to get ArduCopter SITL
+    (the registry's ``find``)."""
+    found = find_ardupilot()
+    if found is None:
+        raise ArduPilotNotFoundError(
+            'ArduCopter SITL not found: set DECKLAND_ARDUPILOT_SITL to an arducopter SITL '
+            'binary (ArduCopter 4.5.6), or provide ../shared/ardupilot-sitl')
+    return found
+
+
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_DO_SET_MODE = 176
@@ -373,6 +385,20 @@ def mission_params(scenario) -> dict[str, float]:
     p = ardupilot_params(scenario.vehicle, lp.min_range_m, lp.max_range_m)
     p['SIM_RATE_HZ'] = JSON_RATE_HZ
     return p
+
+
+def all_mission_params(scenario) -> dict[str, float]:
+    """Everything ArduCopter is told for a mission of ``scenario``: :data:`MISSION_PARAMS`
+    and :func:`mission_params` (the registry's ``params``; :attr:`ArduPilotMission.params`)."""
+    return {**MISSION_PARAMS, **mission_params(scenario)}
+
+
+def failsafe_check(report: dict, params: dict) -> dict:
+    """For a link-fault mission (the registry's ``failsafe_check``): ArduCopter flew LAND
+    after GUIDED_NOGPS (the bridge's stop action, or ArduCopter's GCS failsafe, FS_GCS_ENABLE
+    5, when the bridge itself is gone), ended disarmed and not on the deck edge."""
+    from deckland.sitl.campaign import safe_action_check
+    return safe_action_check(report, 'ardupilot', ArduPilotMission.OFFBOARD_MODE, 'LAND')
 
 
 class ArduPilotOperator:
@@ -542,7 +568,7 @@ class ArduPilotMission(_Px4MissionBase):
         from deck_simulator.ardupilot_json import SEA_LEVEL_HOME
         self.scenario = scenario
         self.home = SEA_LEVEL_HOME
-        self.params = {**MISSION_PARAMS, **mission_params(scenario)}
+        self.params = all_mission_params(scenario)
         self.wire = False
         self.keep_ulog = pathlib.Path(keep_ulog) if keep_ulog else None
         self.sitl = ArduPilotSitl('JSON', self.params, home=SEA_LEVEL_HOME, nice=nice,
@@ -592,6 +618,10 @@ class ArduPilotMission(_Px4MissionBase):
 
     def _log_tail(self) -> str:
         return self.sitl.log_text()[-1500:]
+
+    def cpu_s(self) -> float:
+        """ArduCopter's CPU time so far (user + system, seconds)."""
+        return self.sitl.cpu_s()
 
     def _proc_gone(self) -> bool:
         return self.sitl.proc is None or self.sitl.proc.poll() is not None

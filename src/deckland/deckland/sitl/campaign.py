@@ -1,7 +1,7 @@
-"""``deckland campaign --autopilot px4-sitl|ardupilot-sitl``: seeded missions through SITL.
+"""``deckland campaign --autopilot NAME``: seeded missions through a registered firmware.
 
 Run ``i`` flies seed ``S * 100000 + i`` (:func:`deckland.campaign.run_seed`) as one ``deckland
-up --autopilot px4-sitl`` mission in its own process (its own PX4, working directory and
+up --autopilot NAME`` mission in its own process (its own firmware, working directory and
 graph), in real time: the graph runs on the wall clock, so the world cannot go faster than
 it. The report is the in-process campaign's JSON (:func:`deckland.campaign.summarize`) plus
 ``autopilot``, ``per_run`` (each seed through PX4 and in-process, side by side),
@@ -31,35 +31,13 @@ from deck_simulator.outcome import RunOutcome
 
 #: PX4 mode names of the offboard-loss actions (COM_OBL_RC_ACT)
 SAFE_ACTION_MODES = {3: 'AUTO.RTL', 4: 'AUTO.LAND', 5: 'AUTO.LOITER'}
-#: per firmware: the report key of its part, the mode it flies our setpoints in
-FIRMWARE = {'px4-sitl': ('px4', 'OFFBOARD'), 'ardupilot-sitl': ('ardupilot', 'GUIDED_NOGPS')}
-
-
-def _firmware_params(args, scen) -> dict[str, Any]:
-    """The firmware's parameters for the scenario's missions."""
-    if args.autopilot == 'ardupilot-sitl':
-        from deckland.sitl.ardupilot import MISSION_PARAMS
-        from deckland.sitl.ardupilot import mission_params as ap_params
-        return {**MISSION_PARAMS, **ap_params(scen)}
-    from deckland.sitl.mission import mission_params
-    return mission_params(scen)
-
-
-def _expected_action(args, params: dict[str, Any]) -> str:
-    """The mode the firmware should fly when the setpoints stop: PX4's COM_OBL_RC_ACT;
-    ArduPilot: the bridge's stop action (LAND, its default) — or ArduCopter's GCS failsafe
-    (FS_GCS_ENABLE 5: LAND) when the bridge itself is gone."""
-    if args.autopilot == 'ardupilot-sitl':
-        return 'LAND'
-    return SAFE_ACTION_MODES.get(int(params.get('COM_OBL_RC_ACT', -1)), '?')
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The SITL options of ``deckland campaign`` (used with ``--autopilot px4-sitl``)."""
-    p.add_argument('--autopilot', choices=('in-process', 'px4-sitl', 'ardupilot-sitl'),
+    from deckland.sitl import SITL_AUTOPILOTS
+    p.add_argument('--autopilot', choices=('in-process', *SITL_AUTOPILOTS),
                    default='in-process',
-                   help="px4-sitl / ardupilot-sitl: every run a 'deckland up --autopilot X' "
-                   'mission, one after another in real time (deckland.sitl.campaign)')
+                   help="a firmware (e.g. px4-sitl): every run a 'deckland up --autopilot "
+                   "NAME' mission, one after another in real time (deckland.sitl.campaign)")
     p.add_argument('--mission-timeout', type=float, default=120.0,
                    help='px4-sitl: mission timeout after the landing trigger [s]')
     p.add_argument('--retries', type=int, default=2,
@@ -97,23 +75,28 @@ def spoiled(report: dict[str, Any], max_stalls: int) -> str:
     return ''
 
 
-def failsafe_check(report: dict[str, Any], params: dict[str, Any],
-                   firmware: str = 'px4-sitl', want: str | None = None) -> dict[str, Any]:
-    """For a link-fault mission: the firmware flew its configured safe action (PX4:
-    ``COM_OBL_RC_ACT``; ``want``) after OFFBOARD / GUIDED_NOGPS, ended landed and disarmed,
-    and not on the deck edge."""
-    if want is None:
-        want = SAFE_ACTION_MODES.get(int(params.get('COM_OBL_RC_ACT', -1)), '?')
-    key, offboard = FIRMWARE[firmware]
-    px4 = report.get(key) or {}
-    modes = [m['mode'] for m in px4.get('modes', [])]
-    after = [b for a, b in itertools.pairwise(modes) if a == offboard
-             and b != offboard]
+def failsafe_check(report: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
+    """For a link-fault mission: PX4 flew its configured offboard-loss action
+    (``COM_OBL_RC_ACT``) after OFFBOARD, ended landed and disarmed, and not on the deck
+    edge."""
+    want = SAFE_ACTION_MODES.get(int(params.get('COM_OBL_RC_ACT', -1)), '?')
+    return safe_action_check(report, 'px4', 'OFFBOARD', want)
+
+
+def safe_action_check(report: dict[str, Any], key: str, offboard_mode: str,
+                      want: str) -> dict[str, Any]:
+    """The firmware (``report[key]``) flew ``want`` first after leaving ``offboard_mode``,
+    ended disarmed, not on the deck edge and without a crash (a backend's
+    ``failsafe_check``)."""
+    fw = report.get(key) or {}
+    modes = [m['mode'] for m in fw.get('modes', [])]
+    after = [b for a, b in itertools.pairwise(modes) if a == offboard_mode
+             and b != offboard_mode]
     seen = after[0] if after else ''
-    disarmed = px4.get('armed_at_end') is False
+    disarmed = fw.get('armed_at_end') is False
     edge = report.get('contact_kind') == 'edge'
     return {'action_expected': want, 'action_seen': seen, 'disarmed': disarmed,
-            'landed_state_at_end': px4.get('landed_state_at_end'), 'edge': edge,
+            'landed_state_at_end': fw.get('landed_state_at_end'), 'edge': edge,
             'crash': bool(report.get('crash')),
             'ok': seen == want and disarmed and not edge and not report.get('crash')}
 
@@ -172,10 +155,13 @@ def run_sitl_campaign(args) -> dict[str, Any]:
 
     from deckland.campaign import run_seed, summarize
     from deckland.runner import RunConfig, run_landing
+    from deckland.sitl import SITL_AUTOPILOTS
 
+    backend = SITL_AUTOPILOTS[args.autopilot]
+    key = backend.report_key
+    check = backend.load('failsafe_check')
     scen = load_scenario(args.scenario)
-    params = _firmware_params(args, scen)
-    key = FIRMWARE[args.autopilot][0]
+    params = backend.load('params')(scen)
     link_fault = any(getattr(f, 'loss_timeout_s', None) is not None for f in scen.faults)
     keep = pathlib.Path(args.keep_runs) if args.keep_runs else None
     workdir = keep or pathlib.Path(tempfile.mkdtemp(prefix='deckland-sitl-campaign-'))
@@ -203,11 +189,10 @@ def run_sitl_campaign(args) -> dict[str, Any]:
         ref_results.append(ref)
         row = {'seed': seed, key: _figures(rec), 'in_process': _figures(ref),
                'lockstep': report.get('lockstep'), 'spoiled': why,
-               'hover_thrust_source': _hover_source(report, key),
+               'hover_thrust_source': _hover_source(report.get(key)),
                f'{key}_modes': [m['mode'] for m in (report.get(key) or {}).get('modes', [])]}
         if link_fault:
-            row['failsafe_check'] = chk = failsafe_check(report, params, args.autopilot,
-                                                         _expected_action(args, params))
+            row['failsafe_check'] = chk = check(report, params)
             checks.append(chk)
         per_run.append(row)
         sys.stderr.write(f'{scen.name} {key} {i + 1}/{args.runs} seed {seed}: {rec.outcome} '
@@ -221,7 +206,7 @@ def run_sitl_campaign(args) -> dict[str, Any]:
     for k in ('realtime_factor', 'realtime_factor_per_worker', 'workers'):
         ref_summary.pop(k)
     report.update({
-        'autopilot': args.autopilot,
+        'autopilot': backend.name,
         f'{key}_params': params,
         'in_process': ref_summary,
         'comparison': compare(report, ref_summary),
@@ -230,13 +215,14 @@ def run_sitl_campaign(args) -> dict[str, Any]:
         'machine': {'cpus': os.cpu_count(), 'load_1min_before': round(load0, 2),
                     'load_1min_after': round(os.getloadavg()[0], 2),
                     'niceness': os.nice(0)},
-        'command': f'deckland campaign --autopilot {args.autopilot} ' + ' '.join(
+        'command': f'deckland campaign --autopilot {backend.name} ' + ' '.join(
             f'--{k.replace("_", "-")} {v}' for k, v in (
                 ('scenario', args.scenario), ('runs', args.runs), ('seed', args.seed))),
     })
     if link_fault:
         report['failsafe_check'] = {'runs': len(checks), 'ok': sum(c['ok'] for c in checks),
-                                    'expected_action': _expected_action(args, params)}
+                                    'expected_action': checks[0]['action_expected']
+                                    if checks else None}
     if keep is None:
         for f in workdir.iterdir():
             f.unlink()
@@ -244,43 +230,39 @@ def run_sitl_campaign(args) -> dict[str, Any]:
     return report
 
 
-def _hover_source(report: dict[str, Any], key: str = 'px4') -> str:
+def _hover_source(firmware: dict[str, Any] | None) -> str:
     """Where the bridge's hover thrust came from: measured in the firmware's own hover, or
-    its parameter (MPC_THR_HOVER / MOT_THST_HOVER) when that hover was not steady enough."""
-    h = (report.get(key) or {}).get('hover_thrust_measured')
+    its parameter (PX4 MPC_THR_HOVER, ArduCopter MOT_THST_HOVER) when that hover was not
+    steady enough (``firmware``: the mission report's firmware record)."""
+    h = (firmware or {}).get('hover_thrust_measured')
     return f'measured {h:.4f}' if isinstance(h, float) else 'the hover parameter'
 
 
 def cmd_sitl_campaign(args) -> int:
-    """``deckland campaign --autopilot px4-sitl``: run, print, write ``--out``."""
+    """``deckland campaign --autopilot NAME`` (a registered firmware): run, print, write
+    ``--out``."""
     from deckland.campaign import format_table
-    from deckland.sitl.ardupilot import ArduPilotNotFoundError, find_ardupilot
-    from deckland.sitl.px4 import Px4NotFoundError, find_px4
+    from deckland.sitl import SITL_AUTOPILOTS, SitlNotFoundError
 
+    backend = SITL_AUTOPILOTS[args.autopilot]
     try:
-        if args.autopilot == 'ardupilot-sitl' and find_ardupilot() is None:
-            raise ArduPilotNotFoundError(
-                'ArduCopter SITL not found: set DECKLAND_ARDUPILOT_SITL to an arducopter SITL '
-                'binary (or provide ../shared/ardupilot-sitl)')
-        if args.autopilot == 'px4-sitl' and find_px4() is None:
-            raise Px4NotFoundError('PX4 SITL not found: set DECKLAND_PX4_SITL to a PX4 v1.16 '
-                                   'build/px4_sitl_default folder (or ../shared/px4-sitl)')
-    except (Px4NotFoundError, ArduPilotNotFoundError) as exc:
+        backend.load('find')()
+    except SitlNotFoundError as exc:
         print(f'deckland campaign: {exc}', file=sys.stderr)
         return 2
     if args.compare or args.controller != 'dob':
-        print(f'deckland campaign: --autopilot {args.autopilot} flies the graph (controller '
-              'dob)', file=sys.stderr)
+        print(f'deckland campaign: --autopilot {backend.name} flies the graph (controller dob)',
+              file=sys.stderr)
         return 2
     report = run_sitl_campaign(args)
-    print(format_table([{**report, 'controller': args.autopilot},
+    print(format_table([{**report, 'controller': backend.name},
                         {**report['in_process'], 'controller': 'in-process',
                                  'wall_time_s': 0.0, 'realtime_factor': 0.0}]))
-    print(f"comparison ({args.autopilot} / in-process): {json.dumps(report['comparison'])}")
+    print(f"comparison ({backend.name} / in-process): {json.dumps(report['comparison'])}")
     if 'failsafe_check' in report:
         print(f"failsafe check: {json.dumps(report['failsafe_check'])}")
     for f in report['failures'][:10]:
-        print(f"  {args.autopilot} failed seed {f['seed']}: {f['reason']}")
+        print(f"  {backend.name} failed seed {f['seed']}: {f['reason']}")
     if args.out:
         out = pathlib.Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)

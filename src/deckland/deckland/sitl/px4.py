@@ -24,6 +24,8 @@ import tempfile
 import time
 import weakref
 
+from deckland.sitl import SitlNotFoundError, SitlStartError
+
 #: airframes used here (PX4 v1.16 ROMFS): SIH quadrotor, built-in physics; Iris for an
 #: external simulator over the Simulator MAVLink API (TCP 4560 + instance)
 SIH_QUADX = (10040, 'sihsim_quadx')
@@ -41,11 +43,11 @@ def _cleanup(pid: int, workdir: str) -> None:
     shutil.rmtree(workdir, ignore_errors=True)
 
 
-class Px4NotFoundError(RuntimeError):
+class Px4NotFoundError(SitlNotFoundError):
     """No PX4 SITL build at ``$DECKLAND_PX4_SITL`` or ``../shared/px4-sitl``."""
 
 
-class Px4StartError(RuntimeError):
+class Px4StartError(SitlStartError):
     """PX4 did not come up (the message carries the end of its log)."""
 
 
@@ -83,6 +85,16 @@ def find_px4(env: dict[str, str] | None = None) -> pathlib.Path | None:
                 f'DECKLAND_PX4_SITL={given}: no bin/px4 and etc/init.d-posix/rcS there (build '
                 'PX4 v1.16 with `make px4_sitl_default` and point it at build/px4_sitl_default)')
     return None
+
+
+def require_px4() -> pathlib.Path:
+    """:func:`find_px4`, or Px4NotFoundError saying how to get PX4 SITL."""
+    found = find_px4()
+    if found is None:
+        raise Px4NotFoundError('PX4 SITL not found: set DECKLAND_PX4_SITL to a PX4 v1.16 '
+                               'build/px4_sitl_default folder (`make px4_sitl_default` at '
+                               'v1.16.0), or provide ../shared/px4-sitl')
+    return found
 
 
 def ports(instance: int) -> dict[str, int]:
@@ -157,10 +169,7 @@ class Px4Sitl:
                  = None, instance: int | None = None, nice: int = 0, logging: bool = False,
                  keep_log_dir: pathlib.Path | None = None, extra_env: dict[str, str] | None
                  = None) -> None:
-        found = root if root is not None else find_px4()
-        if found is None:
-            raise Px4NotFoundError('PX4 SITL not found: set DECKLAND_PX4_SITL to a PX4 v1.16 '
-                                   'build/px4_sitl_default folder (or ../shared/px4-sitl)')
+        found = root if root is not None else require_px4()
         self.root = pathlib.Path(found)
         self.airframe = airframe
         self.params = dict(params or {})
