@@ -577,6 +577,7 @@ class ArduPilotMission(_Px4MissionBase):
         self.times: dict[str, float] = {}
         self.param_fixes: dict[str, float | None] = {}
         self.hover: float | None = None
+        self._subs: list = []               # rclpy subscriptions on the monitor's node
         self._t0 = float('nan')
 
     def start(self) -> None:
