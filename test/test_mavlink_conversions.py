@@ -419,12 +419,15 @@ def test_core_ignores_gcs_and_other_systems():
 def test_core_ardupilot_checks_guid_options():
     core = link_core(BridgeParams(autopilot='ardupilot'))
     reqs = [o.param_id for o in core.step(0.0) if o.kind == 'param_request']
-    assert reqs == ['GUID_OPTIONS', 'ANGLE_BOOST']
-    core.on_param_value('GUID_OPTIONS', 0.0)
-    core.on_param_value('ANGLE_BOOST', 0.0)
+    # ArduCopter 4.5 calls the tilt boost ATC_ANGLE_BOOST (ANGLE_BOOST is never answered)
+    assert reqs[:4] == ['GUID_OPTIONS', 'ATC_ANGLE_BOOST', 'GUID_TIMEOUT', 'MOT_THST_HOVER']
+    core.on_param_value('GUID_OPTIONS', 0.0, 6)
+    core.on_param_value('ATC_ANGLE_BOOST', 0.0, 2)
+    core.on_param_value('GUID_TIMEOUT', 1.0, 9)
+    core.on_param_value('MOT_THST_HOVER', 0.35, 9)
     ok, msg = core.request_offboard(0.1)
     assert not ok and 'GUID_OPTIONS' in msg
-    core.on_param_value('GUID_OPTIONS', 8.0)
+    core.on_param_value('GUID_OPTIONS', 8.0, 6)
     ok, msg = core.request_offboard(0.1)
     assert ok and 'GUIDED_NOGPS' in msg
 

@@ -226,6 +226,8 @@ class _Monitor:
 
 
 class _Px4:
+    NAME = 'PX4'
+
     def take_off(self, abort=None):
         return True, 'PX4 loiters at 2.00 m'
 

@@ -32,6 +32,7 @@ from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.node import Node
 from std_msgs.msg import String
 
+from deck_simulator.ardupilot_json import ArduPilotJson, JsonParams
 from deck_simulator.link import DOWNLINK_MODES
 from deck_simulator.loop import SimulationLoop, TickSchedule, body_twist
 from deck_simulator.outcome import outcome_json
@@ -53,10 +54,13 @@ PARAMS = [
               lambda v: v.strip() != '', 'must not be empty'),
     ParamSpec('seed', 1, 'seed of every random stream of the world', lambda v: v >= 0,
               'must be >= 0'),
-    one_of('autopilot', 'emulator', ('emulator', 'px4-sitl'),
-           "what flies the vehicle: 'emulator' (the emulated PX4 on mavlink_url) or "
-           "'px4-sitl' (PX4 SITL, airframe 10016, connects to px4_sim_port; deckland up "
-           '--autopilot px4-sitl starts it)'),
+    one_of('autopilot', 'emulator', ('emulator', 'px4-sitl', 'ardupilot-sitl'),
+           "what flies the vehicle: 'emulator' (the emulated PX4 on mavlink_url), "
+           "'px4-sitl' (PX4 SITL, airframe 10016, connects to px4_sim_port) or "
+           "'ardupilot-sitl' (ArduCopter SITL --model JSON, servo frames to "
+           'ardupilot_physics_port; deckland up --autopilot X starts them)'),
+    in_range('ardupilot_physics_port', 9002, 1, 65535, 'ardupilot-sitl: UDP port of the JSON '
+             'physics (9002 + 10 x ArduPilot instance); physics_rate_hz = its SIM_RATE_HZ'),
     in_range('px4_sim_port', 4560, 1, 65535, 'px4-sitl: TCP port PX4 connects to (the '
              'Simulator MAVLink API: 4560 + PX4 instance)'),
     ParamSpec('px4_onboard_url', '', "px4-sitl: PX4's onboard link as 'udpin:HOST:PORT' "
@@ -113,7 +117,7 @@ class DeckSimulatorNode(Node):
         self._thread: threading.Thread | None = None
         self._pixy_sock: socket.socket | None = None
         self.emulator: Px4Emulator | None = None
-        self.hil: Px4Hil | None = None
+        self.hil: Px4Hil | ArduPilotJson | None = None   # the firmware in lockstep
         self._links: list = []
         self.px4_lost = ''
         self._lockstep_last: tuple[float, float, float] | None = None
@@ -141,6 +145,9 @@ class DeckSimulatorNode(Node):
         if p['autopilot'] == 'px4-sitl':
             self.sim = self._px4_loop(scenario, p)
             local, target = None, f"PX4 SITL on TCP {p['px4_sim_port']}"
+        elif p['autopilot'] == 'ardupilot-sitl':
+            self.sim = self._ardupilot_loop(scenario, p)
+            local, target = None, f"ArduCopter SITL on UDP {p['ardupilot_physics_port']}"
         else:
             link = self._open_link('mavlink_url', p['mavlink_url'], p['mavlink_fd'])
             # the autopilot maps normalised thrust to the *vehicle's* newtons: hover at 1/(T/W)
@@ -215,6 +222,23 @@ class DeckSimulatorNode(Node):
                               p['physics_rate_hz'], p['truth_rate_hz'],
                               p['mavlink_fault_downlink'], firmware=firmware, relay=relay)
 
+    def _ardupilot_loop(self, scenario, p) -> SimulationLoop:
+        """ArduCopter SITL flies the world (its JSON physics, lockstep on UDP
+        ``ardupilot_physics_port``); ArduCopter talks MAVLink to the bridge itself."""
+        def firmware(world) -> ArduPilotJson:
+            try:
+                self.hil = ArduPilotJson(world, JsonParams(port=p['ardupilot_physics_port'],
+                                                           seed=p['seed']))
+            except OSError as exc:
+                raise ParameterError(f"parameter 'ardupilot_physics_port' = "
+                                     f"{p['ardupilot_physics_port']}: cannot bind: {exc}") \
+                    from None
+            return self.hil
+
+        return SimulationLoop(scenario, p['seed'], None, self._pixy_sender(),
+                              p['physics_rate_hz'], p['truth_rate_hz'],
+                              p['mavlink_fault_downlink'], firmware=firmware)
+
     # --- callbacks -----------------------------------------------------------------------
 
     def _on_mode(self, msg: String) -> None:
@@ -266,7 +290,7 @@ class DeckSimulatorNode(Node):
         wall = now - last[0]
         self.lockstep_rate = (w[1] - last[1]) / wall
         self.get_logger().info(
-            f'lockstep: x{self.lockstep_rate:.2f} real time, waiting for PX4 '
+            f'lockstep: x{self.lockstep_rate:.2f} real time, waiting for the firmware '
             f'{100.0 * (w[2] - last[2]) / wall:.0f} % of the wall time, '
             f"{hil.counters['lockstep_timeouts']} timeouts, {self.overruns} stalls")
 
@@ -283,10 +307,11 @@ class DeckSimulatorNode(Node):
         if hil is None:
             return True
         log = self.get_logger()
-        log.info(f'waiting for PX4 on TCP {hil.params.host}:{hil.params.port}')
+        who = 'ArduCopter on UDP' if isinstance(hil, ArduPilotJson) else 'PX4 on TCP'
+        log.info(f'waiting for {who} {hil.params.host}:{hil.params.port}')
         while not self._stop.is_set():
             if hil.accept(0.2):
-                log.info('PX4 connected: lockstep on the world clock')
+                log.info(f'{who.split()[0]} connected: lockstep on the world clock')
                 return True
         return False
 

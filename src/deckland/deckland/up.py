@@ -12,7 +12,8 @@ receives them (so the bag covers the mission from the trigger on), request OFFBO
 so), ``node_kill`` faults of the scenario are injected (SIGKILL at ``start_s`` after the
 trigger), until the outcome, the timeout or SIGINT/SIGTERM. Then every child is stopped
 (within 5 s), the bag is finished, ``report.json`` is written and a summary is printed.
-``--autopilot px4-sitl``: PX4 SITL flies the simulated vehicle (:mod:`deckland.sitl.mission`:
+``--autopilot px4-sitl`` / ``ardupilot-sitl``: the firmware flies the simulated vehicle
+(:mod:`deckland.sitl.mission` / :mod:`deckland.sitl.ardupilot`:
 started first, an operator's take-off before OFFBOARD, disarm awaited, killed at the end).
 Exit codes: see :data:`EXIT_CODES` and ``src/deckland/README-up.md``.
 """
@@ -518,9 +519,10 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
             raise _EndRunError
         ok, msg = monitor.trigger('bridge/offboard')
         orch.log(f'offboard: {ok} {msg}')
-        if px4 is not None and not px4.wait_mode('OFFBOARD', 5.0, stop_requested.is_set):
-            report = {'success': False, 'reason': f'{backend.name} did not enter OFFBOARD '
-                      f'({msg}; mode {px4.mode})'}
+        if px4 is not None and not px4.wait_mode(px4.OFFBOARD_MODE, 5.0,
+                                                 stop_requested.is_set):
+            report = {'success': False, 'reason': f'{backend.name} did not enter '
+                      f'{px4.OFFBOARD_MODE} ({msg}; mode {px4.mode})'}
             result_code = 4
             orch.log(report['reason'])
             raise _EndRunError
@@ -559,7 +561,7 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
             t_outcome = time.monotonic()
             if px4 is not None:   # PX4's land detector disarms it (or its failsafe lands)
                 disarmed = px4.wait_disarmed(PX4_DISARM_WAIT_S, stop_requested.is_set)
-                orch.log(f'PX4 {"disarmed" if disarmed else "still armed"} '
+                orch.log(f'{px4.NAME} {"disarmed" if disarmed else "still armed"} '
                          f'{time.monotonic() - t_outcome:.1f} s after the touchdown')
             report = dict(monitor.outcome)
             result_code = 0 if report.get('success') else 1
@@ -589,7 +591,7 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
         if px4 is not None:
             px4_report = px4.report(t_trigger)
             px4.stop()
-            orch.log('PX4 stopped, its working directory removed'
+            orch.log(f'{px4.NAME} stopped, its working directory removed'
                      + (f'; ULog kept in {args.keep_ulog}' if args.keep_ulog else ''))
         if recorder is not None:
             with contextlib.suppress(Exception):
@@ -647,8 +649,8 @@ def _start_px4(px4, nodes, orch: Orchestrator) -> str:
     try:
         px4.start()
     except (SitlStartError, OSError) as exc:
-        orch.log(f'PX4 did not start: {exc}')
-        return f'PX4 did not start: {exc}'
+        orch.log(f'{px4.NAME} did not start: {exc}')
+        return f'{px4.NAME} did not start: {exc}'
     # composed: the simulator and the bridge are components (their commands are built at
     # start, so their parameters can still change here)
     px4.configure_graph([c for n in nodes for c in (getattr(n, 'components', None) or [n])])

@@ -145,7 +145,7 @@ class ThrustCalibration:
 
     Tilt: ``thrust_n`` is the thrust magnitude along body z (the paper's u_z); PX4 offboard
     attitude control applies it as body thrust without tilt compensation. ArduPilot GUIDED_NOGPS
-    boosts it by 1/cos(tilt) unless ``ANGLE_BOOST = 0`` (the bridge checks that parameter).
+    boosts it by 1/cos(tilt) unless ``ATC_ANGLE_BOOST = 0`` (the bridge checks that parameter).
     """
 
     mass_kg: float = _VEHICLE.mass_kg                    # the shared vehicle description
@@ -348,6 +348,33 @@ def range_m_to_distance_cm(range_m: float | None, max_distance_cm: int) -> int:
     return min(round(range_m * 100.0), max_distance_cm + 1, 65535)
 
 
+#: metres per 1e-7 degree of latitude (ArduPilot's LOCATION_SCALING_FACTOR, flat earth)
+LOCATION_SCALING_M = 0.011131884502145034
+
+
+def parse_llh(text: str) -> tuple[float, float, float] | None:
+    """``'lat_deg,lon_deg,alt_m'`` → the tuple; '' → None; anything else: ValueError."""
+    if not text.strip():
+        return None
+    parts = [float(v) for v in text.split(',')]
+    if len(parts) != 3 or not all(map(math.isfinite, parts)) or not -90.0 < parts[0] < 90.0 \
+            or not -180.0 <= parts[1] <= 180.0:
+        raise ValueError(f'{text!r} is not "lat_deg,lon_deg,alt_m"')
+    return parts[0], parts[1], parts[2]
+
+
+def origin_offset_enu(origin_e7: tuple[int, int, int],
+                      anchor: tuple[float, float, float]) -> tuple[float, float, float]:
+    """Where the autopilot's local-frame origin (GPS_GLOBAL_ORIGIN: lat/lon 1e-7 deg, alt mm)
+    lies in a map anchored at ``anchor`` (lat_deg, lon_deg, alt_m), ENU metres, with the flat
+    earth ArduPilot's EKF uses for its local frame."""
+    lat, lon, alt = anchor
+    dn = (origin_e7[0] - round(lat * 1e7)) * LOCATION_SCALING_M
+    de = (origin_e7[1] - round(lon * 1e7)) * LOCATION_SCALING_M * \
+        math.cos(math.radians(origin_e7[0] * 1e-7))
+    return de, dn, origin_e7[2] * 1e-3 - alt
+
+
 def local_position_ned_to_enu(x: float, y: float, z: float, vx: float, vy: float,
                               vz: float) -> tuple[Vec3, Vec3]:
     """LOCAL_POSITION_NED → (position ENU, velocity ENU)."""
@@ -433,12 +460,14 @@ PX4_AUTO_SUB_MODES = {1: 'READY', 2: 'TAKEOFF', 3: 'LOITER', 4: 'MISSION', 5: 'R
 #: PX4 ``COM_OBL_RC_ACT`` (offboard-loss action) values → names
 PX4_OFFBOARD_LOSS_ACTIONS = {0: 'position', 1: 'altitude', 2: 'manual', 3: 'return',
                              4: 'land', 5: 'hold', 6: 'terminate', 7: 'disarm'}
+#: ArduCopter 4.5 ``Mode::Number`` (mode.h): 28 TURTLE is new, 13 SPORT was removed in 4.5
+#: ("No such mode 13", measured on 4.5.6 SITL), 26 AUTOROTATE exists in helicopter builds only
 ARDUCOPTER_MODES = {0: 'STABILIZE', 1: 'ACRO', 2: 'ALT_HOLD', 3: 'AUTO', 4: 'GUIDED',
-                    5: 'LOITER', 6: 'RTL', 7: 'CIRCLE', 9: 'LAND', 11: 'DRIFT', 13: 'SPORT',
-                    14: 'FLIP', 15: 'AUTOTUNE', 16: 'POSHOLD', 17: 'BRAKE', 18: 'THROW',
-                    19: 'AVOID_ADSB', 20: 'GUIDED_NOGPS', 21: 'SMART_RTL', 22: 'FLOWHOLD',
-                    23: 'FOLLOW', 24: 'ZIGZAG', 25: 'SYSTEMID', 26: 'AUTOROTATE',
-                    27: 'AUTO_RTL'}
+                    5: 'LOITER', 6: 'RTL', 7: 'CIRCLE', 9: 'LAND', 11: 'DRIFT', 14: 'FLIP',
+                    15: 'AUTOTUNE', 16: 'POSHOLD', 17: 'BRAKE', 18: 'THROW', 19: 'AVOID_ADSB',
+                    20: 'GUIDED_NOGPS', 21: 'SMART_RTL', 22: 'FLOWHOLD', 23: 'FOLLOW',
+                    24: 'ZIGZAG', 25: 'SYSTEMID', 26: 'AUTOROTATE', 27: 'AUTO_RTL',
+                    28: 'TURTLE'}
 
 
 def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:

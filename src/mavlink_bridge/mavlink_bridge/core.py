@@ -1,34 +1,18 @@
 """Decision logic of the MAVLink bridge (pure, time-driven, no sockets, no rclpy).
 
-The ROS node feeds every event with the receive time ``t_s`` (any monotonic origin) and sends
-what the core returns. The core decides:
-
-* link state: the autopilot is "up" while its HEARTBEAT is younger than ``link_timeout_s``;
-* input freshness: a SET_ATTITUDE_TARGET is produced only on a *new* thrust command (the
-  paper's u_z, (16), in newtons) combined with an attitude command that is itself younger than
-  ``input_timeout_s``. When either input goes stale the stream simply stops, so the autopilot's
-  own offboard-loss failsafe (PX4 ``COM_OF_LOSS_T``, ArduPilot's 1 s guided-attitude timeout)
-  takes over; old setpoints are never repeated;
-* the stream rate: a new command is sent *at once* unless a token bucket (rate
-  ``max_stream_rate_hz``, depth ``stream_burst``) is empty; a command whose source stamp is at
-  least ``fresh_period_s`` (one camera period) newer than the last one sent is sent even then
-  (:class:`StreamLimiter`);
-* the offboard entry sequence: OFFBOARD (PX4) / GUIDED_NOGPS (ArduPilot) is requested only
-  while setpoints flow (for ``offboard_warmup_s``; PX4 v1.16 itself needs one setpoint younger
-  than ``COM_OF_LOSS_T``) and, on PX4, only once the autopilot's offboard-loss action
-  (``COM_OBL_RC_ACT``), ``COM_OF_LOSS_T`` and the hover thrust are known and safe;
-* arming and mode requests with retries until the HEARTBEAT confirms them, COMMAND_ACK
-  handling as PX4 sends it (two ACKs per DO_SET_MODE; a disarm refused in the air waits for
-  the land detector), and the disarm when ``control/enabled`` goes False;
-* periodic MAV_CMD_SET_MESSAGE_INTERVAL requests for the telemetry it needs, and (``trim``)
-  interval −1 for every other stream the autopilot sends on this link.
-
-Bad input (NaN/inf, zero quaternions, out-of-order stamps) is counted in :attr:`rejected` and
-never changes the state.
+The node feeds every event with its receive time ``t_s`` and sends what :class:`BridgeCore`
+returns: link state, input freshness and the data-aware setpoint stream, the OFFBOARD /
+GUIDED_NOGPS entry (only while the autopilot's safety-relevant parameters are known and safe,
+re-checked at every send), ArduPilot's stop action (LAND: its GUIDED_NOGPS never lands by
+itself), arm/mode requests with the retries PX4 v1.16 and ArduCopter 4.5 need, telemetry
+requests driven by their ACKs and trims, STATUSTEXT, and :class:`LinkMonitor` (TIMESYNC).
+The decisions and their measurements are in the package README. Bad input is counted in
+``rejected`` and never changes the state.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field, replace
 import math
 
@@ -55,6 +39,8 @@ MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_TEMPORARILY_REJECTED = 1
+MAV_RESULT_DENIED = 2
+MAV_RESULT_UNSUPPORTED = 3
 MAV_RESULT_FAILED = 4
 MAV_RESULT_IN_PROGRESS = 5
 MAV_AUTOPILOT_INVALID = 8
@@ -69,8 +55,16 @@ MSG_ID = {'HEARTBEAT': 0, 'SCALED_IMU': 26, 'ATTITUDE': 30, 'LOCAL_POSITION_NED'
 KEEP_MSG_IDS = frozenset({0, 22, 77, 111, 253, 410, 411, 413})
 #: the PX4 parameters the bridge reads before OFFBOARD (see :meth:`BridgeCore.px4_config_problem`)
 PX4_PARAMS = ('COM_OBL_RC_ACT', 'COM_OF_LOSS_T', 'MPC_THR_HOVER')
+#: the ArduCopter 4.5 parameters the bridge reads (:meth:`BridgeCore.ardupilot_config_problem`
+#: needs the first four; the others are reported in diagnostics)
+ARDUPILOT_PARAMS = ('GUID_OPTIONS', 'ATC_ANGLE_BOOST', 'GUID_TIMEOUT', 'MOT_THST_HOVER',
+                    'MOT_THST_EXPO', 'FS_GCS_ENABLE', 'SYSID_MYGCS')
 #: ArduCopter GUID_OPTIONS bit 3 (value 8): SET_ATTITUDE_TARGET.thrust is thrust, not climb rate.
 GUID_OPTIONS_THRUST_BIT = 8
+#: ``ardupilot_stop_action`` → the ArduCopter mode the bridge commands ('' = none)
+ARDUPILOT_STOP_MODES = {'land': 'LAND', 'loiter': 'LOITER', 'none': ''}
+#: a SET_MESSAGE_INTERVAL not acknowledged within this is forgotten (its ACK was lost)
+_INTERVAL_ACK_TIMEOUT_S = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,6 +91,7 @@ class BridgeParams:
     attitude_target_rate_hz: float = 10.0  # PX4 ATTITUDE_TARGET (hover-thrust measurement)
     use_highres_imu: bool = True           # HIGHRES_IMU, else SCALED_IMU
     target_component: int = 1              # autopilot component id (MAV_COMP_ID_AUTOPILOT1)
+    system_id: int = 1                     # our own system id (ArduPilot SYSID_MYGCS check)
     #: PX4 COM_OBL_RC_ACT values (by name) OFFBOARD may be entered with: what PX4 does when the
     #: setpoints stop (PX4_OFFBOARD_LOSS_ACTIONS); unknown counts as unsafe
     offboard_loss_actions: tuple[str, ...] = ('land', 'hold')
@@ -106,7 +101,16 @@ class BridgeParams:
     hover_thrust_source: str = 'autopilot'
     hover_window_s: float = 4.0            # steady-hover window of the measurement
     trim_telemetry: bool = True            # SET_MESSAGE_INTERVAL -1 for unused streams
-    param_retry_s: float = 2.0             # PARAM_REQUEST_READ repeated until answered
+    param_retry_s: float = 2.0             # PARAM_REQUEST_READ repeated until answered ...
+    param_max_requests: int = 5            # ... at most this often per parameter and link
+    #: ArduPilot: what the bridge commands when its setpoints stop while ArduPilot flies them
+    #: (ARDUPILOT_STOP_MODES: 'land' = LAND, 'loiter' = LOITER, 'none' = GUIDED_NOGPS's own
+    #: timeout: level and hold altitude, indefinitely)
+    ardupilot_stop_action: str = 'land'
+    stop_after_s: float = 0.3              # ArduPilot: stream gap that triggers the stop action
+    disarm_timeout_s: float = 15.0         # ArduPilot: a refused (FAILED) disarm retried so long
+    disarm_retry_s: float = 1.0            # ... this often
+    statustext_repeat_s: float = 5.0       # the same STATUSTEXT within this is not logged again
     link_monitor: LinkMonitorParams = field(default_factory=lambda: LinkMonitorParams())
     thrust: ThrustCalibration = field(default_factory=ThrustCalibration)
 
@@ -119,7 +123,9 @@ class BridgeParams:
                      'command_retry_s', 'command_timeout_s', 'interval_refresh_s',
                      'attitude_rate_hz', 'local_position_rate_hz', 'distance_sensor_rate_hz',
                      'imu_rate_hz', 'extended_sys_state_rate_hz', 'attitude_target_rate_hz',
-                     'max_offboard_loss_timeout_s', 'hover_window_s', 'param_retry_s'):
+                     'max_offboard_loss_timeout_s', 'hover_window_s', 'param_retry_s',
+                     'stop_after_s', 'disarm_timeout_s', 'disarm_retry_s',
+                     'statustext_repeat_s'):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f'BridgeParams.{name} = {v!r}: must be a finite number > 0')
@@ -134,6 +140,17 @@ class BridgeParams:
                 a in PX4_OFFBOARD_LOSS_ACTIONS.values() for a in acts):
             raise ValueError(f'BridgeParams.offboard_loss_actions = {acts!r}: must be a tuple '
                              f'of {sorted(PX4_OFFBOARD_LOSS_ACTIONS.values())}')
+        if self.ardupilot_stop_action not in ARDUPILOT_STOP_MODES:
+            raise ValueError(f'BridgeParams.ardupilot_stop_action = '
+                             f'{self.ardupilot_stop_action!r}: must be one of '
+                             f'{sorted(ARDUPILOT_STOP_MODES)}')
+        n = self.param_max_requests
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 1000:
+            raise ValueError(f'BridgeParams.param_max_requests = {n!r}: must be an integer in '
+                             '[1, 1000]')
+        if not isinstance(self.use_highres_imu, bool):
+            raise ValueError(f'BridgeParams.use_highres_imu = {self.use_highres_imu!r}: must '
+                             'be a bool')
         if self.hover_thrust_source not in ('autopilot', 'parameter'):
             raise ValueError(f'BridgeParams.hover_thrust_source = {self.hover_thrust_source!r}:'
                              " must be 'autopilot' or 'parameter'")
@@ -147,6 +164,9 @@ class BridgeParams:
         if self.max_stream_gap_s > 0.5:
             raise ValueError(f'BridgeParams.max_stream_gap_s = {self.max_stream_gap_s!r}: '
                              'must be <= 0.5 s (PX4 needs > 2 Hz)')
+        if not 1 <= self.system_id <= 255:
+            raise ValueError(f'BridgeParams.system_id = {self.system_id!r}: must be in '
+                             '[1, 255]')
         if not 0 <= self.target_component <= 255:
             raise ValueError(f'BridgeParams.target_component = {self.target_component!r}: '
                              'must be in [0, 255]')
@@ -393,11 +413,14 @@ class _Request:
     the MAVLink receiver's ACCEPTED at once, then the commander's verdict); ``accepted`` is
     set by an accepting verdict (no more sends, the HEARTBEAT confirms); ``deferred`` is set
     when PX4 refused a disarm as TEMPORARILY_REJECTED (in the air): it is sent again only
-    once the land detector says landed."""
+    once the land detector says landed; ``refusals`` counts ArduPilot's FAILED answers to a
+    disarm (retried while its land detector catches up); ``reason`` says why a stop request
+    was made."""
 
-    __slots__ = ('accepted', 'acks', 'deferred', 'last_sent_s', 'sends', 'start_s', 'value')
+    __slots__ = ('accepted', 'acks', 'deferred', 'from_mode', 'last_sent_s', 'reason',
+                 'refusals', 'sends', 'start_s', 'value')
 
-    def __init__(self, t_s: float, value: object) -> None:
+    def __init__(self, t_s: float, value: object, reason: str = '', from_mode: str = '') -> None:
         self.start_s = t_s
         self.last_sent_s = -math.inf
         self.value = value
@@ -405,6 +428,9 @@ class _Request:
         self.sends = 0
         self.accepted = False
         self.deferred = False
+        self.refusals = 0
+        self.reason = reason
+        self.from_mode = from_mode
 
 
 class BridgeCore:
@@ -412,8 +438,8 @@ class BridgeCore:
 
     Inputs: :meth:`on_heartbeat`, :meth:`on_command_ack`, :meth:`on_param_value`,
     :meth:`on_extended_sys_state`, :meth:`on_message`, :meth:`on_attitude_target`,
-    :meth:`on_attitude_command`, :meth:`on_thrust_command`, :meth:`on_enabled`,
-    :meth:`request_arm`, :meth:`request_offboard`.
+    :meth:`on_statustext`, :meth:`on_attitude_command`, :meth:`on_thrust_command`,
+    :meth:`on_enabled`, :meth:`request_arm`, :meth:`request_offboard`.
     Outputs: :meth:`on_thrust_command` returns the :class:`AttitudeSetpoint` to send (or None);
     :meth:`step` returns the :class:`Outgoing` messages due now; :meth:`stream_diagnostics`
     the setpoint rate and gaps.
@@ -425,9 +451,13 @@ class BridgeCore:
                                          'other_system': 0, 'bad_data': 0}
         self.counters: dict[str, int] = {'setpoints_sent': 0, 'rate_limited': 0,
                                          'stale_attitude': 0, 'disabled': 0, 'no_link': 0,
+                                         'not_guided_nogps': 0,
                                          'heartbeats_rx': 0, 'commands_sent': 0,
                                          'link_degraded': 0, 'trim_requests': 0,
-                                         'disarm_deferred': 0}
+                                         'disarm_deferred': 0, 'disarm_refused': 0,
+                                         'interval_refused': 0, 'imu_fallback': 0,
+                                         'param_requests': 0, 'stop_actions': 0,
+                                         'statustext_rx': 0, 'statustext_repeats': 0}
         self.link_monitor = LinkMonitor(self.params.link_monitor)
         self.setpoint_stats = SetpointStats()
         self.hover = HoverThrustEstimator(window_s=self.params.hover_window_s)
@@ -446,6 +476,11 @@ class BridgeCore:
         self.armed = False
         self.landed: bool | None = None
         self.autopilot_params: dict[str, float] = {}
+        self._reset_connection()
+        #: the autopilot's last STATUSTEXT messages, (t_s, severity, text), newest last
+        self.statustexts: deque[tuple[float, int, str]] = deque(maxlen=8)
+        self._statustext_seen: dict[str, float] = {}
+        self._statustext_parts: dict[int, list[str]] = {}
         # inputs
         self._thrust_stamp = -math.inf
         self._att_stamp = -math.inf
@@ -470,8 +505,22 @@ class BridgeCore:
         self._last_trim_s = -math.inf
         self._offboard: _Request | None = None
         self._arm: _Request | None = None
+        #: ArduPilot: the stop action's mode request (LAND / LOITER), retried until it shows
+        self._stop: _Request | None = None
         self.last_result = ''
         self.link_monitor.reset()
+
+    def _reset_connection(self) -> None:
+        """Per-connection knowledge: what the autopilot refused and which parameters were
+        asked (a reconnection may be a rebooted or another autopilot)."""
+        p = self.params
+        #: the IMU message the bridge streams: HIGHRES_IMU, or SCALED_IMU when that is
+        #: configured (use_highres_imu False) or the autopilot refused HIGHRES_IMU
+        self.imu_msg = 'HIGHRES_IMU' if p.use_highres_imu else 'SCALED_IMU'
+        self._refused_ids: set[int] = set()
+        self._interval_fifo: deque[tuple[float, int]] = deque()
+        self._imu_request_due = False
+        self._param_requests: dict[str, int] = {}
 
     # --- link ----------------------------------------------------------------------------
 
@@ -502,17 +551,25 @@ class BridgeCore:
             self.autopilot_params = {}
             self._seen_ids = set()
             self._trimmed = {}
+            self._reset_connection()
             self.hover.reset()
         self._last_hb_s = t_s
         self.counters['heartbeats_rx'] += 1
         self.base_mode = base_mode
         self.custom_mode = custom_mode
+        was_armed = self.armed
         self.armed = bool(base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
         self.mode = mode_name(self.params.autopilot, custom_mode)
+        if was_armed and not self.armed and self.params.autopilot == 'ardupilot':
+            # ArduPilot saves its learned MOT_THST_HOVER (MOT_HOVER_LEARN = 2) at disarm:
+            # read it afresh for the next flight
+            self.autopilot_params.pop('MOT_THST_HOVER', None)
+            self._param_requests.pop('MOT_THST_HOVER', None)
+            self._last_param_req_s = -math.inf
         return True
 
     def on_command_ack(self, t_s: float, command: int, result: int) -> None:
-        """COMMAND_ACK, as PX4 v1.16 sends them.
+        """COMMAND_ACK, as PX4 v1.16 and ArduCopter 4.5 send them.
 
         DO_SET_MODE is answered twice by PX4: first the MAVLink receiver's ACCEPTED (the
         command was forwarded), then the commander's verdict; the first ACK after a send is
@@ -520,9 +577,25 @@ class BridgeCore:
         re-sends (the HEARTBEAT, 1 Hz on PX4, confirms); TEMPORARILY_REJECTED is retried; a
         final refusal (DENIED, FAILED, UNSUPPORTED, …) cancels the request. A disarm refused
         as TEMPORARILY_REJECTED (PX4 in the air) is deferred until the land detector says
-        landed instead of being repeated (each refusal is a critical message on every GCS).
+        landed instead of being repeated (each refusal is a critical message on every GCS);
+        ArduPilot answers a disarm FAILED until its land detector confirms the landing: it is
+        retried (:meth:`_step_arm`). SET_MESSAGE_INTERVAL answers are matched to the requests
+        in the order they were sent (:meth:`_on_interval_ack`).
         """
-        if command == MAV_CMD_DO_SET_MODE and self._offboard is not None:
+        if command == MAV_CMD_SET_MESSAGE_INTERVAL:
+            self._on_interval_ack(t_s, result)
+        elif command == MAV_CMD_DO_SET_MODE and self._stop is not None:
+            req = self._stop
+            if result == MAV_RESULT_ACCEPTED:
+                req.accepted = True
+            elif result not in (MAV_RESULT_IN_PROGRESS, MAV_RESULT_TEMPORARILY_REJECTED):
+                req.refusals += 1
+                if req.value != 'LAND':
+                    # LOITER needs a position estimate: LAND instead
+                    self._stop = _Request(t_s, 'LAND', f'{req.reason}; {req.value} refused '
+                                          f'(MAV_RESULT {result})', req.from_mode)
+                    self.last_result = f'stop: {self._stop.reason}, commanding LAND'
+        elif command == MAV_CMD_DO_SET_MODE and self._offboard is not None:
             req = self._offboard
             req.acks += 1
             if result == MAV_RESULT_IN_PROGRESS:
@@ -540,6 +613,16 @@ class BridgeCore:
             if result in (MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS):
                 req.accepted = result == MAV_RESULT_ACCEPTED
                 return
+            if not req.value and self.params.autopilot == 'ardupilot':
+                # ArduCopter refuses a disarm (FAILED) until its land detector says landed
+                # (in the air, or for the seconds after a touchdown): retried, not cancelled
+                req.refusals += 1
+                self.counters['disarm_refused'] += 1
+                self.last_result = (f'disarm refused (MAV_RESULT {result}): ArduPilot has not '
+                                    'confirmed the landing; retried every '
+                                    f'{self.params.disarm_retry_s:g} s for '
+                                    f'{self.params.disarm_timeout_s:g} s')
+                return
             if result == MAV_RESULT_TEMPORARILY_REJECTED:
                 if not req.value:
                     if not req.deferred:
@@ -552,11 +635,35 @@ class BridgeCore:
             self._arm = None
             self.last_result = f'{what} refused (MAV_RESULT {result})'
 
+    def _on_interval_ack(self, t_s: float, result: int) -> None:
+        """The answer to the oldest SET_MESSAGE_INTERVAL still waiting for one (autopilots
+        answer them in order; one whose ACK was lost is forgotten after 2 s). A refused stream
+        is not asked for again on this connection; a refused HIGHRES_IMU — ArduCopter has no
+        such message (DENIED, each request a "No ap_message for mavlink id (105)" broadcast to
+        every link) — switches the IMU to SCALED_IMU, requested at once."""
+        fifo = self._interval_fifo
+        while fifo and t_s - fifo[0][0] > _INTERVAL_ACK_TIMEOUT_S:
+            fifo.popleft()
+        if not fifo:
+            return
+        _, msg_id = fifo.popleft()
+        if result not in (MAV_RESULT_DENIED, MAV_RESULT_UNSUPPORTED, MAV_RESULT_FAILED):
+            return
+        if msg_id not in self._refused_ids:
+            self._refused_ids.add(msg_id)
+            self.counters['interval_refused'] += 1
+        if msg_id == MSG_ID['HIGHRES_IMU'] and self.imu_msg == 'HIGHRES_IMU':
+            self.imu_msg = 'SCALED_IMU'
+            self._imu_request_due = True
+            self.counters['imu_fallback'] += 1
+            self.last_result = (f'HIGHRES_IMU refused (MAV_RESULT {result}): vehicle/imu from '
+                                'SCALED_IMU')
+
     def on_param_value(self, name: str, value: float,
                        param_type: int = MAV_PARAM_TYPE_REAL32) -> None:
-        """PARAM_VALUE: PX4's COM_OBL_RC_ACT / COM_OF_LOSS_T / MPC_THR_HOVER, ArduPilot's
-        GUID_OPTIONS / ANGLE_BOOST. PX4 sends integer parameters bytewise, ArduPilot as
-        floats (:func:`~mavlink_bridge.conversions.param_value_from_wire`)."""
+        """PARAM_VALUE: PX4's :data:`PX4_PARAMS`, ArduPilot's :data:`ARDUPILOT_PARAMS`. PX4
+        sends integer parameters bytewise, ArduPilot as floats
+        (:func:`~mavlink_bridge.conversions.param_value_from_wire`)."""
         if not isinstance(name, str):
             return
         v = param_value_from_wire(value, param_type, self.params.autopilot == 'px4')
@@ -574,13 +681,51 @@ class BridgeCore:
 
     def on_attitude_target(self, t_s: float, thrust_norm: float, cos_tilt: float,
                            vz_mps: float) -> None:
-        """PX4's ATTITUDE_TARGET.thrust with the current tilt (cos φ cos θ) and vertical
-        speed: a hover-thrust sample while PX4 flies by itself (armed, in the air, not
-        OFFBOARD, the bridge not streaming and no OFFBOARD request pending)."""
-        if not (self.armed and self.landed is False and self.mode != 'OFFBOARD'
+        """ATTITUDE_TARGET.thrust with the current tilt (cos φ cos θ) and vertical speed: a
+        hover-thrust sample while the autopilot flies by itself (armed, in the air, not in
+        OFFBOARD / GUIDED_NOGPS, where it echoes our setpoints, the bridge not streaming and
+        no request pending). PX4 and ArduPilot report their own collective there (ArduCopter
+        in GUIDED after its take-off: 0.345 on the SITL quad, measured)."""
+        if not (self.armed and self.landed is False and self.mode != self.params.offboard_mode
                 and self._offboard is None and not self.streaming(t_s)):
             return
         self.hover.on_sample(t_s, thrust_norm, cos_tilt, vz_mps)
+
+    def on_statustext(self, t_s: float, severity: int, text: str, text_id: int = 0,
+                      chunk_seq: int = 0) -> str | None:
+        """STATUSTEXT (ArduPilot's and PX4's reasons: "No such mode 13", "GCS Failsafe"…).
+
+        Returns the complete text to log, or None: a MAVLink 2 text longer than 50 characters
+        arrives in chunks with the same ``text_id`` (the last one shorter than 50), and the
+        same text again within ``statustext_repeat_s`` is kept but not logged again (a
+        repeated refusal must not flood the log). Every complete text is kept in
+        :attr:`statustexts`."""
+        if not isinstance(text, str) or not math.isfinite(t_s):
+            self.rejected['bad_data'] += 1
+            return None
+        part = text.split('\x00', 1)[0]
+        if text_id:
+            parts = self._statustext_parts.setdefault(int(text_id), [])
+            if chunk_seq != len(parts):
+                parts.clear()           # a chunk was lost: start again from this one
+            parts.append(part)
+            if len(part) >= 50 and len(parts) < 6:
+                return None             # more to come
+            part = ''.join(parts)
+            del self._statustext_parts[int(text_id)]
+            if len(self._statustext_parts) > 8:
+                self._statustext_parts.clear()
+        self.counters['statustext_rx'] += 1
+        self.statustexts.append((t_s, int(severity), part))
+        last = self._statustext_seen.get(part)
+        self._statustext_seen[part] = t_s
+        if len(self._statustext_seen) > 64:
+            self._statustext_seen = {k: v for k, v in self._statustext_seen.items()
+                                     if t_s - v <= self.params.statustext_repeat_s}
+        if last is not None and 0.0 <= t_s - last < self.params.statustext_repeat_s:
+            self.counters['statustext_repeats'] += 1
+            return None
+        return part
 
     def count_bad_data(self, n: int = 1) -> None:
         """Garbage or truncated bytes seen by the transport."""
@@ -589,11 +734,22 @@ class BridgeCore:
     # --- commands from ROS ---------------------------------------------------------------
 
     def on_enabled(self, t_s: float, enabled: bool) -> None:
-        """``control/enabled``: False stops streaming and requests a disarm."""
+        """``control/enabled``: False (landed) stops streaming and requests a disarm. On
+        ArduPilot the bridge also commands LAND: ArduCopter refuses the disarm until its land
+        detector confirms the landing, which it does in LAND (~1.5 s after touchdown,
+        measured) but never in GUIDED_NOGPS on thrust (20 s of FAILED, measured); LAND then
+        disarms by itself, the disarm request is retried meanwhile. Only while ArduCopter flies
+        our setpoints (GUIDED_NOGPS): in its own modes it is the operator's."""
         if self.enabled and not enabled:
             self._offboard = None
-            if self.armed:
+            ardupilot = self.params.autopilot == 'ardupilot'
+            if self.armed and ardupilot and not self.in_offboard():
+                pass   # ArduCopter flies its own mode (an operator's GUIDED take-off, whose
+                #        lift-off flickers the landed state): not ours to land or disarm
+            elif self.armed:
                 self._arm = _Request(t_s, False)
+                if ardupilot and self.mode != 'LAND':
+                    self._start_stop(t_s, 'LAND', 'control/enabled False (landed)')
         self.enabled = bool(enabled)
 
     def on_attitude_command(self, t_s: float, stamp_s: float,
@@ -656,6 +812,13 @@ class BridgeCore:
         if not self.link_up(t_s):
             self.counters['no_link'] += 1
             return None
+        if p.autopilot == 'ardupilot' and self.mode != p.offboard_mode and \
+                self._offboard is None:
+            # ArduCopter's GUIDED (and its other modes that take attitude targets) would fly
+            # a SET_ATTITUDE_TARGET as an angle command, overriding its own position control
+            # (an operator's take-off): only GUIDED_NOGPS, or its entry sequence, is ours
+            self.counters['not_guided_nogps'] += 1
+            return None
         if self.link_monitor.degraded:
             # the link is too slow to close the loops over: stop streaming, so that the
             # autopilot's offboard-loss failsafe takes over (LinkMonitor)
@@ -709,11 +872,14 @@ class BridgeCore:
         and a gap exceeded half of PX4's ``COM_OF_LOSS_T`` (1 s assumed when unknown): one
         more such stall and PX4 takes its offboard-loss action."""
         rate, gap = self.setpoint_stats.window(t_s)
-        limit = self.autopilot_params.get('COM_OF_LOSS_T', 1.0)
+        if self.params.autopilot == 'px4':
+            name, limit = 'COM_OF_LOSS_T', self.autopilot_params.get('COM_OF_LOSS_T', 1.0)
+        else:
+            name, limit = 'stop_after_s', self.params.stop_after_s
         warn = ''
         if self.in_offboard() and gap > 0.5 * limit:
-            warn = (f'setpoint gap {gap * 1e3:.0f} ms > half of COM_OF_LOSS_T '
-                    f'({limit:.2f} s): the autopilot is close to its offboard-loss action')
+            warn = (f'setpoint gap {gap * 1e3:.0f} ms > half of {name} '
+                    f'({limit:.2f} s): close to the offboard-loss action')
         return rate, gap, warn
 
     # --- services ------------------------------------------------------------------------
@@ -747,24 +913,32 @@ class BridgeCore:
             # that is still slow degrades again after window + confirm_s)
             self.link_monitor.reset()
         self.thrust, self.hover_source = self._calibration()
+        if self._stop is not None:
+            self._stop = None       # the operator takes the vehicle back from the stop
         if self.in_offboard():
             return True, f'already in {p.offboard_mode}'
         self._offboard = _Request(t_s, p.offboard_mode)
-        note = ('' if p.autopilot != 'px4' else
-                f'; hover thrust {self.thrust.hover_thrust_norm:.3f} ({self.hover_source})')
+        note = f'; hover thrust {self.thrust.hover_thrust_norm:.3f} ({self.hover_source})'
+        if p.autopilot == 'ardupilot':
+            note += f'; {self.ardupilot_link_loss()}'
         return True, (f'{p.offboard_mode} requested; sent once setpoints have streamed for '
                       f'{p.offboard_warmup_s:.1f} s{note}')
 
     def _calibration(self) -> tuple[ThrustCalibration, str]:
-        """The thrust calibration for the next OFFBOARD and where its hover thrust comes
-        from: PX4's measured hover (:attr:`hover`), else ``MPC_THR_HOVER``, else the
-        configured one (``hover_thrust_source = 'parameter'``, or ArduPilot)."""
+        """The thrust calibration for the next OFFBOARD / GUIDED_NOGPS and where its hover
+        thrust comes from: the autopilot's measured hover (:attr:`hover`), else its hover
+        parameter (PX4 ``MPC_THR_HOVER``, ArduPilot ``MOT_THST_HOVER``), else the configured
+        one (``hover_thrust_source = 'parameter'``). Both autopilots linearise their
+        normalised thrust (``THR_MDL_FAC``, ``MOT_THST_EXPO``), so the curve stays the
+        configured residual ``expo`` (0 = linear); ArduPilot's ``MOT_THST_EXPO`` is reported,
+        never applied a second time."""
         cal = self.params.thrust
-        if self.params.autopilot != 'px4' or self.params.hover_thrust_source != 'autopilot':
+        if self.params.hover_thrust_source != 'autopilot':
             return cal, 'parameter'
+        name = 'MPC_THR_HOVER' if self.params.autopilot == 'px4' else 'MOT_THST_HOVER'
         h, src = self.hover.estimate, "measured in the autopilot's hover"
         if math.isnan(h):
-            h, src = self.autopilot_params.get('MPC_THR_HOVER', math.nan), 'MPC_THR_HOVER'
+            h, src = self.autopilot_params.get(name, math.nan), name
         if not cal.norm_min < h < cal.norm_max:
             return cal, 'parameter'
         return replace(cal, hover_thrust_norm=h), src
@@ -801,28 +975,77 @@ class BridgeCore:
         return ''
 
     def ardupilot_config_problem(self) -> str:
-        """Why ArduPilot's GUIDED_NOGPS would misread our thrust ('' when fine or unknown)."""
-        if self.params.autopilot != 'ardupilot':
+        """Why ArduPilot must not be put in GUIDED_NOGPS now ('' when fine; always '' on PX4).
+
+        Fail closed: an unknown value is a problem (issue 17: a request made before the
+        PARAM_VALUE arrived engaged GUIDED_NOGPS with ``GUID_OPTIONS`` = 0). ``GUID_OPTIONS``
+        needs bit 3 (otherwise the thrust is read as a climb rate, 0.5 = hold);
+        ``ATC_ANGLE_BOOST`` must be 0 (ArduCopter 4.5's name, default 1: it would divide our
+        body-axis thrust by cos(tilt) again); ``GUID_TIMEOUT`` at most
+        ``max_offboard_loss_timeout_s`` (ArduPilot flies the last setpoint that long when the
+        bridge cannot speak); the hover thrust must be known when it comes from ArduPilot."""
+        p = self.params
+        if p.autopilot != 'ardupilot':
             return ''
-        opts = self.autopilot_params.get('GUID_OPTIONS')
-        if opts is not None and not int(opts) & GUID_OPTIONS_THRUST_BIT:
-            return ('GUID_OPTIONS bit 3 (8) is not set: ArduPilot would read thrust as a climb '
-                    'rate')
-        boost = self.autopilot_params.get('ANGLE_BOOST')
-        if boost is not None and boost != 0.0:
-            return 'ANGLE_BOOST must be 0: the bridge sends body thrust, not tilt-compensated'
+        ap = self.autopilot_params
+
+        def unknown(name: str, what: str) -> str:
+            n = self._param_requests.get(name, 0)
+            tail = (f' (not answered after {n} requests)' if n >= p.param_max_requests else '')
+            return f'{name} not read yet{tail}: {what} is unknown'
+
+        opts = ap.get('GUID_OPTIONS')
+        if opts is None:
+            return unknown('GUID_OPTIONS', 'whether ArduPilot reads the thrust as thrust')
+        if not int(opts) & GUID_OPTIONS_THRUST_BIT:
+            return (f'GUID_OPTIONS = {int(opts)}: bit 3 (8) is not set, ArduPilot would read '
+                    'the thrust as a climb rate; set GUID_OPTIONS = 8')
+        boost = ap.get('ATC_ANGLE_BOOST')
+        if boost is None:
+            return unknown('ATC_ANGLE_BOOST', 'the tilt compensation')
+        if boost != 0.0:
+            return (f'ATC_ANGLE_BOOST = {boost:g}: ArduPilot would divide the body-axis thrust '
+                    'by cos(tilt) again; set ATC_ANGLE_BOOST = 0')
+        lt = ap.get('GUID_TIMEOUT')
+        if lt is None:
+            return unknown('GUID_TIMEOUT', 'how long ArduPilot flies a stale setpoint')
+        if not 0.0 < lt <= p.max_offboard_loss_timeout_s:
+            return (f'GUID_TIMEOUT = {lt:g} s not in (0, {p.max_offboard_loss_timeout_s:g}] s: '
+                    'ArduPilot would fly a stale setpoint that long when the bridge cannot '
+                    'speak; set GUID_TIMEOUT <= '
+                    f'{p.max_offboard_loss_timeout_s:g}')
+        if p.hover_thrust_source == 'autopilot' and not self.hover.valid and \
+                'MOT_THST_HOVER' not in ap:
+            return unknown('MOT_THST_HOVER', 'the hover thrust')
         return ''
+
+    def ardupilot_link_loss(self) -> str:
+        """What ArduPilot does when this link goes silent (the bridge cannot command its stop
+        action then): its GCS failsafe lands when ``FS_GCS_ENABLE`` = 5 and ``SYSID_MYGCS`` is
+        this companion's system id (measured: LAND 4.8 s after the last heartbeat, disarmed
+        15.6 s after, from 2 m); otherwise GUIDED_NOGPS levels after ``GUID_TIMEOUT`` and holds
+        altitude indefinitely."""
+        ap = self.autopilot_params
+        fs, gcs = ap.get('FS_GCS_ENABLE'), ap.get('SYSID_MYGCS')
+        if fs is None or gcs is None:
+            return 'link-loss action unknown (FS_GCS_ENABLE / SYSID_MYGCS not read)'
+        if int(fs) == 5 and self.target_system is not None and int(gcs) == self.params.system_id:
+            return 'on link loss ArduPilot lands (GCS failsafe on this companion)'
+        return (f'on link loss ArduPilot hovers in GUIDED_NOGPS (FS_GCS_ENABLE = {int(fs)}, '
+                f'SYSID_MYGCS = {int(gcs)}): set FS_GCS_ENABLE = 5 and SYSID_MYGCS = '
+                f'{self.params.system_id} to land')
 
     def pending(self) -> dict[str, object]:
         """Pending requests, for diagnostics."""
         return {'offboard': self._offboard is not None,
-                'arm': None if self._arm is None else self._arm.value}
+                'arm': None if self._arm is None else self._arm.value,
+                'stop': None if self._stop is None else self._stop.value}
 
     # --- periodic ------------------------------------------------------------------------
 
     def step(self, t_s: float) -> list[Outgoing]:
         """What to send now: heartbeat (1 Hz), message intervals and stream trims, parameter
-        reads, retries of arm/mode."""
+        reads, retries of arm/mode, ArduPilot's stop action."""
         p = self.params
         out: list[Outgoing] = []
         if not math.isfinite(t_s):
@@ -838,52 +1061,73 @@ class BridgeCore:
             self._link_was_up = False
             self._offboard = None
             self._arm = None
+            self._stop = None
             return out
         self._link_was_up = True
         if self.link_monitor.poll(t_s):
             out.append(Outgoing('timesync', params=(t_s,)))
         if t_s - self._last_interval_s >= p.interval_refresh_s:
             self._last_interval_s = t_s
-            out.extend(self._interval_requests())
+            self._imu_request_due = False
+            out.extend(self._interval_requests(t_s))
+        elif self._imu_request_due:
+            self._imu_request_due = False
+            out.extend(self._interval_requests(t_s, only=(self.imu_msg,)))
         if p.trim_telemetry and t_s - self._last_trim_s >= 1.0:
             self._last_trim_s = t_s
-            out.extend(self._trim_requests())
-        wanted = (PX4_PARAMS if p.autopilot == 'px4' else ('GUID_OPTIONS', 'ANGLE_BOOST'))
-        missing = [n for n in wanted if n not in self.autopilot_params]
-        if missing and t_s - self._last_param_req_s >= p.param_retry_s:
-            self._last_param_req_s = t_s
-            out.extend(Outgoing('param_request', param_id=n) for n in missing)
+            out.extend(self._trim_requests(t_s))
+        if t_s - self._last_param_req_s >= p.param_retry_s:
+            wanted = PX4_PARAMS if p.autopilot == 'px4' else ARDUPILOT_PARAMS
+            missing = [n for n in wanted if n not in self.autopilot_params
+                       and self._param_requests.get(n, 0) < p.param_max_requests]
+            if missing:
+                self._last_param_req_s = t_s
+                for n in missing:
+                    self._param_requests[n] = self._param_requests.get(n, 0) + 1
+                self.counters['param_requests'] += len(missing)
+                out.extend(Outgoing('param_request', param_id=n) for n in missing)
+        self._step_stop(t_s, out)
         self._step_offboard(t_s, out)
         self._step_arm(t_s, out)
         self.counters['commands_sent'] += sum(1 for o in out if o.kind == 'command')
         return out
 
-    def _interval_requests(self) -> list[Outgoing]:
-        """SET_MESSAGE_INTERVAL for the telemetry used. Not HEARTBEAT: PX4 refuses it by
+    def _interval_request(self, t_s: float, msg_id: int, interval_us: float,
+                          note: str) -> Outgoing:
+        """A SET_MESSAGE_INTERVAL, remembered until its ACK (:meth:`_on_interval_ack`)."""
+        self._interval_fifo.append((t_s, msg_id))
+        if len(self._interval_fifo) > 256:
+            self._interval_fifo.popleft()
+        return Outgoing('command', MAV_CMD_SET_MESSAGE_INTERVAL,
+                        (float(msg_id), interval_us, 0.0, 0.0, 0.0, 0.0, 0.0), note=note)
+
+    def _interval_requests(self, t_s: float,
+                           only: tuple[str, ...] | None = None) -> list[Outgoing]:
+        """SET_MESSAGE_INTERVAL for the telemetry used (``only`` these names), except the
+        streams this autopilot refused on this connection. Not HEARTBEAT: PX4 refuses it by
         design (FAILED, v1.16) and sends it at 1 Hz anyway."""
         p = self.params
         rates = [('ATTITUDE', p.attitude_rate_hz),
                  ('LOCAL_POSITION_NED', p.local_position_rate_hz),
                  ('DISTANCE_SENSOR', p.distance_sensor_rate_hz),
-                 ('HIGHRES_IMU' if p.use_highres_imu else 'SCALED_IMU', p.imu_rate_hz),
+                 (self.imu_msg, p.imu_rate_hz),
                  ('EXTENDED_SYS_STATE', p.extended_sys_state_rate_hz)]
-        if p.autopilot == 'px4' and p.hover_thrust_source == 'autopilot':
+        if p.hover_thrust_source == 'autopilot':
             rates.append(('ATTITUDE_TARGET', p.attitude_target_rate_hz))
-        return [Outgoing('command', MAV_CMD_SET_MESSAGE_INTERVAL,
-                         (float(MSG_ID[name]), float(round(1e6 / hz)), 0.0, 0.0, 0.0, 0.0, 0.0),
-                         note=name) for name, hz in rates]
+        return [self._interval_request(t_s, MSG_ID[name], float(round(1e6 / hz)), name)
+                for name, hz in rates
+                if MSG_ID[name] not in self._refused_ids and (only is None or name in only)]
 
     def used_msg_ids(self) -> frozenset[int]:
         """Message ids the bridge reads (never trimmed), protocol messages included."""
         p = self.params
         used = {MSG_ID['ATTITUDE'], MSG_ID['LOCAL_POSITION_NED'], MSG_ID['DISTANCE_SENSOR'],
-                MSG_ID['HIGHRES_IMU' if p.use_highres_imu else 'SCALED_IMU'],
-                MSG_ID['EXTENDED_SYS_STATE']}
-        if p.autopilot == 'px4' and p.hover_thrust_source == 'autopilot':
+                MSG_ID[self.imu_msg], MSG_ID['EXTENDED_SYS_STATE']}
+        if p.hover_thrust_source == 'autopilot':
             used.add(MSG_ID['ATTITUDE_TARGET'])
         return KEEP_MSG_IDS | used
 
-    def _trim_requests(self) -> list[Outgoing]:
+    def _trim_requests(self, t_s: float) -> list[Outgoing]:
         """SET_MESSAGE_INTERVAL(id, −1) — "stop sending" — for every message the autopilot
         sends us that the bridge does not read (PX4's onboard link streams ~33 types by
         default). Each id is asked at most 3 times per connection, 1 s apart, and only while
@@ -892,14 +1136,63 @@ class BridgeCore:
         out = []
         for mid in sorted(self._seen_ids - used):
             n = self._trimmed.get(mid, 0)
-            if n >= 3:
+            if n >= 3 or mid in self._refused_ids:
                 continue
             self._trimmed[mid] = n + 1
             self.counters['trim_requests'] += 1
-            out.append(Outgoing('command', MAV_CMD_SET_MESSAGE_INTERVAL,
-                                (float(mid), -1.0, 0.0, 0.0, 0.0, 0.0, 0.0), note=f'trim {mid}'))
+            out.append(self._interval_request(t_s, mid, -1.0, f'trim {mid}'))
         self._seen_ids = set()
         return out
+
+    def _start_stop(self, t_s: float, mode: str, reason: str) -> None:
+        """ArduPilot: command ``mode`` (LAND / LOITER) now, retried until the HEARTBEAT shows
+        it; any OFFBOARD request is dropped."""
+        self._offboard = None
+        self._stop = _Request(t_s, mode, reason, self.mode)
+        self.counters['stop_actions'] += 1
+        self.last_result = f'stop: {reason}, commanding {mode}'
+
+    def _step_stop(self, t_s: float, out: list[Outgoing]) -> None:
+        """ArduPilot's stop action. GUIDED_NOGPS without setpoints flies the last one for
+        ``GUID_TIMEOUT``, then levels and holds altitude forever (measured on 4.5.6): when the
+        bridge stops streaming while ArduPilot flies its setpoints (inputs stale, link latency
+        too high) it commands ``ardupilot_stop_action`` after ``stop_after_s`` itself."""
+        p = self.params
+        if p.autopilot != 'ardupilot':
+            return
+        req = self._stop
+        if req is None:
+            mode = ARDUPILOT_STOP_MODES[p.ardupilot_stop_action]
+            if mode and self.in_offboard() and self._last_sent_s > -math.inf and \
+                    t_s - self._last_sent_s > p.stop_after_s:
+                why = ('link latency too high' if self.link_monitor.degraded else
+                       'control/enabled False' if not self.enabled else
+                       'control inputs stale')
+                self._start_stop(t_s, mode, f'setpoints stopped {t_s - self._last_sent_s:.2f} s '
+                                 f'ago ({why})')
+                req = self._stop
+            else:
+                return
+        assert req is not None
+        if self.mode == req.value or not self.armed:
+            self._stop = None
+            self.last_result = (f'{req.value} active ({req.reason})' if self.armed else
+                                f'disarmed ({req.reason})')
+            return
+        if self.mode != req.from_mode:
+            self._stop = None       # someone else (an operator, a failsafe) changed the mode
+            self.last_result = f'stop {req.value} not sent again: the mode is now {self.mode}'
+            return
+        if t_s - req.start_s > p.command_timeout_s:
+            self._stop = None       # (made again at once while the stream is still stopped)
+            self.last_result = f'stop {req.value} request timed out ({req.reason})'
+            return
+        if t_s - req.last_sent_s >= p.command_retry_s:
+            req.last_sent_s = t_s
+            req.sends += 1
+            p1, p2, p3 = do_set_mode_params(p.autopilot, str(req.value))
+            out.append(Outgoing('command', MAV_CMD_DO_SET_MODE,
+                                (p1, p2, p3, 0.0, 0.0, 0.0, 0.0), note=str(req.value)))
 
     def _step_offboard(self, t_s: float, out: list[Outgoing]) -> None:
         req = self._offboard
@@ -921,6 +1214,13 @@ class BridgeCore:
                 t_s - self._last_sent_s > 0.5 * p.input_timeout_s:
             return  # stream first, and only ask while it is flowing right now
         if t_s - req.last_sent_s >= p.command_retry_s:
+            # fail closed at every send: what the autopilot told us since the request (a
+            # PARAM_VALUE of GUID_OPTIONS = 0, a re-read after a reconnection) still counts
+            problem = self.ardupilot_config_problem() or self.px4_config_problem()
+            if problem:
+                self._offboard = None
+                self.last_result = f'{p.offboard_mode} request cancelled: {problem}'
+                return
             req.last_sent_s = t_s
             req.acks = 0
             req.sends += 1
@@ -937,18 +1237,25 @@ class BridgeCore:
             self._arm = None
             self.last_result = 'armed' if req.value else 'disarmed'
             return
-        if t_s - req.start_s > p.command_timeout_s:
+        # ArduPilot refuses a disarm until its land detector confirms (FAILED): retried
+        # slower and longer (LAND disarms by itself ~0.5 s after the detection)
+        ap_disarm = p.autopilot == 'ardupilot' and not req.value
+        timeout = p.disarm_timeout_s if ap_disarm else p.command_timeout_s
+        retry = p.disarm_retry_s if ap_disarm and req.refusals else p.command_retry_s
+        if t_s - req.start_s > timeout:
             self._arm = None
             self.last_result = ('arm' if req.value else 'disarm') + ' request timed out' + (
                 ' (the autopilot still says in the air; PX4 disarms by itself after '
-                'landing, COM_DISARM_LAND)' if req.deferred else '')
+                'landing, COM_DISARM_LAND)' if req.deferred else
+                f' after {req.refusals} refusals (ArduPilot never confirmed the landing)'
+                if req.refusals else '')
             return
         if req.deferred:
             if self.landed is not True:
                 return          # wait for the land detector (PX4 would refuse again)
             req.deferred = False
             req.last_sent_s = -math.inf
-        if t_s - req.last_sent_s >= p.command_retry_s:
+        if t_s - req.last_sent_s >= retry:
             req.last_sent_s = t_s
             req.sends += 1
             out.append(Outgoing('command', MAV_CMD_COMPONENT_ARM_DISARM,

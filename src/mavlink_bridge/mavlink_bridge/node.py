@@ -1,8 +1,9 @@
 """ROS 2 adapter of the MAVLink bridge (thin: transport + message conversion only).
 
 Decisions live in :mod:`mavlink_bridge.core` and frame/unit conversions in
-:mod:`mavlink_bridge.conversions`; this module owns the pymavlink connection, a background
-reader thread, a 50 Hz housekeeping timer and the ROS publishers, subscribers and services.
+:mod:`mavlink_bridge.conversions`; this module owns the pymavlink connection (TCP through
+:class:`~mavlink_bridge.tcp.ReconnectingTcp`), a background reader thread, a 50 Hz
+housekeeping timer and the ROS publishers, subscribers and services.
 The core runs on ``time.monotonic()`` (link and input freshness are about the real transport);
 published headers carry the node clock (ROS time, sim time when ``use_sim_time``).
 """
@@ -54,10 +55,13 @@ from mavlink_bridge.conversions import (
     landing_target_ardupilot,
     landing_target_px4,
     local_position_ned_to_enu,
+    origin_offset_enu,
+    parse_llh,
     scaled_imu_to_flu,
 )
-from mavlink_bridge.core import BridgeCore, BridgeParams, LinkMonitorParams
+from mavlink_bridge.core import ARDUPILOT_STOP_MODES, BridgeCore, BridgeParams, LinkMonitorParams
 from mavlink_bridge.signing import load_signing_key, verify_signature_first
+from mavlink_bridge.tcp import ReconnectingTcp
 
 _load_signing_key = load_signing_key   # the earlier private name
 
@@ -66,6 +70,14 @@ _VEHICLE = VehicleDescription()
 
 def _actions(value: str) -> tuple[str, ...]:
     return tuple(a.strip().lower() for a in str(value).split(',') if a.strip())
+
+
+def _valid_llh(value: str) -> bool:
+    try:
+        parse_llh(value)
+    except ValueError:
+        return False
+    return True
 
 
 PARAMS = [
@@ -116,11 +128,27 @@ PARAMS = [
            "else MPC_THR_HOVER; 'parameter' = hover_thrust_norm"),
     ParamSpec('trim_telemetry', True, 'ask the autopilot to stop every stream the bridge does '
               'not read (SET_MESSAGE_INTERVAL -1)'),
+    ParamSpec('use_highres_imu', True, 'vehicle/imu from HIGHRES_IMU (PX4); False = SCALED_IMU. '
+              'An autopilot that refuses HIGHRES_IMU (ArduPilot: DENIED) gets SCALED_IMU '
+              'anyway'),
+    one_of('ardupilot_stop_action', 'land', tuple(ARDUPILOT_STOP_MODES),
+           'ArduPilot: what the bridge commands when its setpoints stop while ArduPilot flies '
+           "them ('land' = LAND; 'loiter' = LOITER, needs a position estimate, else LAND; "
+           "'none' = GUIDED_NOGPS's own timeout: level, hold altitude, indefinitely)"),
+    positive('stop_after_s', 0.3, 'ArduPilot: setpoint gap after which the stop action is '
+             'commanded'),
+    positive('disarm_timeout_s', 15.0, 'ArduPilot: a disarm refused while its land detector '
+             'catches up (FAILED) is retried this long'),
     ParamSpec('signing_key_file', '', 'MAVLink 2 signing key file (32 raw bytes or 64 hex '
               'characters); empty = unsigned'),
     ParamSpec('landing_target_output', False,
               'send LANDING_TARGET from apron/odom (PX4: LOCAL_NED position, ArduPilot: body)'),
     ParamSpec('map_frame', 'map', 'world frame id (ENU)'),
+    ParamSpec('map_origin_llh', '', "'lat_deg,lon_deg,alt_m' of map's origin: positions are "
+              "shifted by where the autopilot's local origin (GPS_GLOBAL_ORIGIN, requested) lies "
+              "in map, and vehicle/odom waits for it (ArduCopter puts its origin at its first "
+              "GPS fix and refuses SET_GPS_GLOBAL_ORIGIN while it uses GPS); empty = map is the "
+              "autopilot's local frame", _valid_llh, "must be empty or 'lat,lon,alt'"),
     ParamSpec('base_frame', 'base_link', 'body frame id (FLU)'),
     ParamSpec('lidar_frame', 'lidar_link', 'frame id of vehicle/range'),
     positive('range_field_of_view_rad', 0.008, 'Range.field_of_view (LidarLite v3 beam)'),
@@ -156,6 +184,10 @@ class MavlinkBridgeNode(Node):
                 max_offboard_loss_timeout_s=cfg['max_offboard_loss_timeout_s'],
                 hover_thrust_source=cfg['hover_thrust_source'],
                 trim_telemetry=cfg['trim_telemetry'],
+                use_highres_imu=bool(cfg['use_highres_imu']),
+                ardupilot_stop_action=cfg['ardupilot_stop_action'],
+                stop_after_s=cfg['stop_after_s'], disarm_timeout_s=cfg['disarm_timeout_s'],
+                system_id=cfg['system_id'],
                 target_component=cfg['target_component'], thrust=calib,
                 link_monitor=LinkMonitorParams(
                     period_s=cfg['timesync_period_s'], max_latency_s=cfg['max_link_latency_s'],
@@ -165,9 +197,15 @@ class MavlinkBridgeNode(Node):
         self._lock = threading.Lock()
         self._t0 = time.monotonic()
         mavutil.set_dialect('common')  # MAVLink 2 common (MAVLINK20 set above)
-        self.conn = mavutil.mavlink_connection(
-            cfg['connection'], baud=cfg['baud'], source_system=cfg['system_id'],
-            source_component=cfg['component_id'], dialect='common')
+        dev = cfg['connection'].strip()
+        if dev.startswith('tcp:'):
+            # survives the peer going away: no busy loop, reconnects (issue 17, finding 7)
+            self.conn = ReconnectingTcp(dev[4:], source_system=cfg['system_id'],
+                                        source_component=cfg['component_id'])
+        else:
+            self.conn = mavutil.mavlink_connection(
+                dev, baud=cfg['baud'], source_system=cfg['system_id'],
+                source_component=cfg['component_id'], dialect='common')
         self.signed = bool(cfg['signing_key_file'])
         if self.signed:
             try:
@@ -185,6 +223,11 @@ class MavlinkBridgeNode(Node):
         # latest telemetry (ENU/FLU)
         self._att = None          # ((roll, pitch, yaw), rates)
         self._pos = None          # (position, velocity)
+        self._anchor = parse_llh(cfg['map_origin_llh'])
+        #: the autopilot's local origin in map (ENU), from GPS_GLOBAL_ORIGIN; None = unknown
+        self._origin_enu: tuple[float, float, float] | None = (
+            None if self._anchor is not None else (0.0, 0.0, 0.0))
+        self._origin_asked_s = -math.inf
         self._published_state: dict[str, object] = {}
 
         self.pub_odom = self.create_publisher(Odometry, 'vehicle/odom', RELIABLE_QOS)
@@ -208,6 +251,7 @@ class MavlinkBridgeNode(Node):
         self.create_timer(1.0, self._publish_diagnostics)
         self._build_messages()
         self._degraded_logged = False
+        self._last_result_logged = ''
         self._running = True
         self._reader = threading.Thread(target=self._read_loop, name='mavlink_reader',
                                         daemon=True)
@@ -327,19 +371,42 @@ class MavlinkBridgeNode(Node):
         elif kind == 'LOCAL_POSITION_NED':
             vals = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
             if all(map(math.isfinite, vals)):
-                self._pos = local_position_ned_to_enu(*vals)
+                (x, y, z), vel = local_position_ned_to_enu(*vals)
+                o = self._origin_enu
+                if o is None:
+                    self._count_rejected('no_origin')    # map anchored, origin not known yet
+                    return
+                self._pos = ((x + o[0], y + o[1], z + o[2]), vel)
                 self._publish_odom()
             else:
                 self._count_rejected('nan')
+        elif kind == 'GPS_GLOBAL_ORIGIN':
+            if self._anchor is not None:
+                o = origin_offset_enu((msg.latitude, msg.longitude, msg.altitude), self._anchor)
+                if o != self._origin_enu:
+                    self.get_logger().info(
+                        f"autopilot's local origin at ({o[0]:.3f}, {o[1]:.3f}, {o[2]:.3f}) m "
+                        'in map')
+                self._origin_enu = o
         elif kind == 'HIGHRES_IMU':
+            if self.core.imu_msg != kind:
+                return            # (only one IMU stream is published)
             vals = (msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro)
             if all(map(math.isfinite, vals)):
                 self._publish_imu(*imu_frd_to_flu(*vals))
             else:
                 self._count_rejected('nan')
         elif kind == 'SCALED_IMU':
+            if self.core.imu_msg != kind:
+                return
             self._publish_imu(*scaled_imu_to_flu(msg.xacc, msg.yacc, msg.zacc, msg.xgyro,
                                                  msg.ygyro, msg.zgyro))
+        elif kind == 'STATUSTEXT':
+            with self._lock:
+                text = self.core.on_statustext(now, msg.severity, msg.text,
+                                               getattr(msg, 'id', 0), getattr(msg, 'chunk_seq', 0))
+            if text is not None:
+                self._log_statustext(msg.severity, text)
         elif kind == 'DISTANCE_SENSOR':
             if msg.orientation != MAV_SENSOR_ROTATION_PITCH_270:
                 return  # not the downward LidarLite
@@ -352,6 +419,20 @@ class MavlinkBridgeNode(Node):
             out.range = distance_sensor_to_rep117(msg.current_distance, msg.min_distance,
                                                   msg.max_distance)
             self.pub_range.publish(out)
+
+    def _log_statustext(self, severity: int, text: str) -> None:
+        """The autopilot's text at the matching log level (MAV_SEVERITY 0-3 error, 4 warning,
+        5-6 info, 7 debug)."""
+        # one call site per severity: rclpy refuses a call site whose severity changes
+        log, line = self.get_logger(), f'autopilot: {text}'
+        if severity <= 3:
+            log.error(line)
+        elif severity == 4:
+            log.warning(line)
+        elif severity <= 6:
+            log.info(line)
+        else:
+            log.debug(line)
 
     def _count_rejected(self, reason: str) -> None:
         with self._lock:
@@ -464,7 +545,11 @@ class MavlinkBridgeNode(Node):
         with self._lock:
             response.success, response.message = self.core.request_offboard(self._now())
         log = self.get_logger()
-        (log.info if response.success else log.warning)(f'bridge/offboard: {response.message}')
+        # (two call sites: rclpy raises when one call site's severity changes)
+        if response.success:
+            log.info(f'bridge/offboard: {response.message}')
+        else:
+            log.warning(f'bridge/offboard: {response.message}')
         return response
 
     # --- periodic ------------------------------------------------------------------------
@@ -487,11 +572,28 @@ class MavlinkBridgeNode(Node):
                                o.param_id.encode('ascii'), -1)
                 elif o.kind == 'timesync':
                     self._send(self.conn.mav.timesync_send, 0, round(o.params[0] * 1e9))
+            now = self._now()
+            if self._anchor is not None and self._origin_enu is None and \
+                    now - self._origin_asked_s > 2.0 and self.core.link_up(now):
+                self._origin_asked_s = now       # MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN
+                self._send(self.conn.mav.command_long_send, ts, tc, 512, 0, 49, 0, 0, 0, 0,
+                           0, 0)
             mon = self.core.link_monitor
             degraded, reason = mon.degraded, mon.reason
+            result = self.core.last_result
         if degraded and not self._degraded_logged:
             self.get_logger().error(reason)
         self._degraded_logged = degraded
+        if result != self._last_result_logged:
+            self._last_result_logged = result
+            if result.startswith(('stop:', 'HIGHRES_IMU refused', 'disarm refused',
+                                  'disarm request timed out')):
+                self.get_logger().warning(result)
+        events = getattr(self.conn, 'events', None)
+        if events:
+            for e in events[:]:
+                self.get_logger().warning(f'MAVLink {e}')
+            del events[:]
 
     def _publish_diagnostics(self) -> None:
         """1 Hz: the link monitor (latency, degraded and why), our own setpoint stream (rate
@@ -512,6 +614,11 @@ class MavlinkBridgeNode(Node):
             measured = core.hover.estimate
             problem = core.px4_config_problem() or core.ardupilot_config_problem()
             params = dict(core.autopilot_params)
+            imu_msg = core.imu_msg
+            texts = list(core.statustexts)
+            stop = core.pending()['stop']
+            link_loss = (core.ardupilot_link_loss() if core.params.autopilot == 'ardupilot'
+                         else '')
             link = LinkStatus(
                 autopilot=(LinkStatus.AUTOPILOT_PX4 if core.params.autopilot == 'px4'
                            else LinkStatus.AUTOPILOT_ARDUPILOT),
@@ -540,7 +647,15 @@ class MavlinkBridgeNode(Node):
                 'degraded': str(degraded), 'mode': mode, 'last_result': last,
                 'offboard_refused_because': problem,
                 'hover_thrust_norm': f'{hover:.4f}', 'hover_thrust_source': hover_src,
-                'hover_thrust_measured': f'{measured:.4f}'}
+                'hover_thrust_measured': f'{measured:.4f}', 'imu_message': imu_msg,
+                'stop_pending': '' if stop is None else str(stop),
+                'statustext_last': (f'[{texts[-1][1]}] {texts[-1][2]}' if texts else ''),
+                'statustext_recent': ' | '.join(t for _, _, t in texts[-4:])}
+        if link_loss:
+            vals['ardupilot_link_loss'] = link_loss
+        tcp = getattr(self.conn, 'stats', None)
+        if tcp is not None:
+            vals.update({f'tcp_{k}': str(v) for k, v in tcp.items()})
         vals.update({f'param_{k}': f'{v:g}' for k, v in params.items()})
         vals.update({k: str(v) for k, v in counters.items()})
         st.values = [KeyValue(key=k, value=v) for k, v in vals.items()]

@@ -4,7 +4,8 @@
 campaign`` and ``deckland bench latency`` to a :class:`SitlAutopilot`: where its build is
 found, the mission object that starts it and plays the operator, the parameters a scenario
 gives it and the check of its offboard-loss failsafe. PX4 v1.16 SITL (:mod:`.px4`,
-:mod:`.mission`) is the one entry; another firmware registers one more with :func:`register`.
+:mod:`.mission`) and ArduCopter 4.5.6 SITL (:mod:`.ardupilot`) are the entries; another
+firmware registers one more with :func:`register`.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ class SitlAutopilot:
     """One firmware in the loop. Each field but ``name``, ``help`` and ``report_key`` is a
     ``'module:attribute'`` imported on use (no firmware code is loaded to list them):
 
-    - ``mission``: a class ``(scenario, *, keep_ulog=None)`` with ``start()``,
+    - ``mission``: a class ``(scenario, *, keep_ulog=None)`` with ``NAME`` (for logs),
+      ``OFFBOARD_MODE`` (the mode it flies the companion's setpoints in), ``start()``,
       ``configure_graph(nodes)``, ``wait_up(timeout_s, abort)``, ``times`` (``up_s``),
       ``GROUND_SILENT``, ``operator_take_off(monitor, log, abort)``, ``mode``,
       ``wait_mode(mode, timeout_s, abort)``, ``wait_disarmed(timeout_s, abort)``,
@@ -80,3 +82,12 @@ register(SitlAutopilot(
     find='deckland.sitl.px4:require_px4',
     failsafe_check='deckland.sitl.campaign:failsafe_check',
     report_key='px4'))
+register(SitlAutopilot(
+    name='ardupilot-sitl',
+    help='ArduCopter 4.5.6 SITL from $DECKLAND_ARDUPILOT_SITL / ../shared/ardupilot-sitl '
+    "(--model JSON: deckland's world as its physics in lockstep)",
+    mission='deckland.sitl.ardupilot:ArduPilotMission',
+    params='deckland.sitl.ardupilot:all_mission_params',
+    find='deckland.sitl.ardupilot:require_ardupilot',
+    failsafe_check='deckland.sitl.ardupilot:failsafe_check',
+    report_key='ardupilot'))

@@ -1,7 +1,7 @@
-"""``deckland campaign --autopilot px4-sitl``: seeded missions through PX4 SITL, one at a time.
+"""``deckland campaign --autopilot NAME``: seeded missions through a registered firmware.
 
 Run ``i`` flies seed ``S * 100000 + i`` (:func:`deckland.campaign.run_seed`) as one ``deckland
-up --autopilot px4-sitl`` mission in its own process (its own PX4, working directory and
+up --autopilot NAME`` mission in its own process (its own firmware, working directory and
 graph), in real time: the graph runs on the wall clock, so the world cannot go faster than
 it. The report is the in-process campaign's JSON (:func:`deckland.campaign.summarize`) plus
 ``autopilot``, ``per_run`` (each seed through PX4 and in-process, side by side),
@@ -31,8 +31,6 @@ from deck_simulator.outcome import RunOutcome
 
 #: PX4 mode names of the offboard-loss actions (COM_OBL_RC_ACT)
 SAFE_ACTION_MODES = {3: 'AUTO.RTL', 4: 'AUTO.LAND', 5: 'AUTO.LOITER'}
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The SITL options of ``deckland campaign`` (used with ``--autopilot px4-sitl``)."""
     from deckland.sitl import SITL_AUTOPILOTS
@@ -82,15 +80,23 @@ def failsafe_check(report: dict[str, Any], params: dict[str, Any]) -> dict[str, 
     (``COM_OBL_RC_ACT``) after OFFBOARD, ended landed and disarmed, and not on the deck
     edge."""
     want = SAFE_ACTION_MODES.get(int(params.get('COM_OBL_RC_ACT', -1)), '?')
-    px4 = report.get('px4') or {}
-    modes = [m['mode'] for m in px4.get('modes', [])]
-    after = [b for a, b in itertools.pairwise(modes) if a == 'OFFBOARD'
-             and b != 'OFFBOARD']
+    return safe_action_check(report, 'px4', 'OFFBOARD', want)
+
+
+def safe_action_check(report: dict[str, Any], key: str, offboard_mode: str,
+                      want: str) -> dict[str, Any]:
+    """The firmware (``report[key]``) flew ``want`` first after leaving ``offboard_mode``,
+    ended disarmed, not on the deck edge and without a crash (a backend's
+    ``failsafe_check``)."""
+    fw = report.get(key) or {}
+    modes = [m['mode'] for m in fw.get('modes', [])]
+    after = [b for a, b in itertools.pairwise(modes) if a == offboard_mode
+             and b != offboard_mode]
     seen = after[0] if after else ''
-    disarmed = px4.get('armed_at_end') is False
+    disarmed = fw.get('armed_at_end') is False
     edge = report.get('contact_kind') == 'edge'
     return {'action_expected': want, 'action_seen': seen, 'disarmed': disarmed,
-            'landed_state_at_end': px4.get('landed_state_at_end'), 'edge': edge,
+            'landed_state_at_end': fw.get('landed_state_at_end'), 'edge': edge,
             'crash': bool(report.get('crash')),
             'ok': seen == want and disarmed and not edge and not report.get('crash')}
 
@@ -152,6 +158,7 @@ def run_sitl_campaign(args) -> dict[str, Any]:
     from deckland.sitl import SITL_AUTOPILOTS
 
     backend = SITL_AUTOPILOTS[args.autopilot]
+    key = backend.report_key
     check = backend.load('failsafe_check')
     scen = load_scenario(args.scenario)
     params = backend.load('params')(scen)
@@ -180,16 +187,15 @@ def run_sitl_campaign(args) -> dict[str, Any]:
         results.append(rec)
         ref = run_landing(scen, seed, RunConfig(controller='dob'))
         ref_results.append(ref)
-        row = {'seed': seed, 'px4': _figures(rec), 'in_process': _figures(ref),
+        row = {'seed': seed, key: _figures(rec), 'in_process': _figures(ref),
                'lockstep': report.get('lockstep'), 'spoiled': why,
-               'hover_thrust_source': _hover_source(report.get(backend.report_key)),
-               'px4_modes': [m['mode'] for m in
-                             (report.get(backend.report_key) or {}).get('modes', [])]}
+               'hover_thrust_source': _hover_source(report.get(key)),
+               f'{key}_modes': [m['mode'] for m in (report.get(key) or {}).get('modes', [])]}
         if link_fault:
             row['failsafe_check'] = chk = check(report, params)
             checks.append(chk)
         per_run.append(row)
-        sys.stderr.write(f'{scen.name} px4 {i + 1}/{args.runs} seed {seed}: {rec.outcome} '
+        sys.stderr.write(f'{scen.name} {key} {i + 1}/{args.runs} seed {seed}: {rec.outcome} '
                          f'{rec.reason} (in-process {ref.outcome}); '
                          f'{time.perf_counter() - start:.0f} s\n')
         sys.stderr.flush()
@@ -201,7 +207,7 @@ def run_sitl_campaign(args) -> dict[str, Any]:
         ref_summary.pop(k)
     report.update({
         'autopilot': backend.name,
-        'px4_params': params,
+        f'{key}_params': params,
         'in_process': ref_summary,
         'comparison': compare(report, ref_summary),
         'per_run': per_run,
@@ -215,8 +221,8 @@ def run_sitl_campaign(args) -> dict[str, Any]:
     })
     if link_fault:
         report['failsafe_check'] = {'runs': len(checks), 'ok': sum(c['ok'] for c in checks),
-                                    'expected_action': SAFE_ACTION_MODES.get(
-                                        int(params.get('COM_OBL_RC_ACT', -1)), '?')}
+                                    'expected_action': checks[0]['action_expected']
+                                    if checks else None}
     if keep is None:
         for f in workdir.iterdir():
             f.unlink()
@@ -225,14 +231,16 @@ def run_sitl_campaign(args) -> dict[str, Any]:
 
 
 def _hover_source(firmware: dict[str, Any] | None) -> str:
-    """Where the bridge's hover thrust came from: measured in PX4's loiter, or MPC_THR_HOVER
-    when PX4's loiter was not steady enough (``firmware``: the mission report's PX4 record)."""
+    """Where the bridge's hover thrust came from: measured in the firmware's own hover, or
+    its parameter (PX4 MPC_THR_HOVER, ArduCopter MOT_THST_HOVER) when that hover was not
+    steady enough (``firmware``: the mission report's firmware record)."""
     h = (firmware or {}).get('hover_thrust_measured')
-    return f'measured {h:.4f}' if isinstance(h, float) else 'MPC_THR_HOVER'
+    return f'measured {h:.4f}' if isinstance(h, float) else 'the hover parameter'
 
 
 def cmd_sitl_campaign(args) -> int:
-    """``deckland campaign --autopilot px4-sitl``: run, print, write ``--out``."""
+    """``deckland campaign --autopilot NAME`` (a registered firmware): run, print, write
+    ``--out``."""
     from deckland.campaign import format_table
     from deckland.sitl import SITL_AUTOPILOTS, SitlNotFoundError
 
@@ -250,11 +258,11 @@ def cmd_sitl_campaign(args) -> int:
     print(format_table([{**report, 'controller': backend.name},
                         {**report['in_process'], 'controller': 'in-process',
                                  'wall_time_s': 0.0, 'realtime_factor': 0.0}]))
-    print(f"comparison (PX4 / in-process): {json.dumps(report['comparison'])}")
+    print(f"comparison ({backend.name} / in-process): {json.dumps(report['comparison'])}")
     if 'failsafe_check' in report:
         print(f"failsafe check: {json.dumps(report['failsafe_check'])}")
     for f in report['failures'][:10]:
-        print(f"  px4 failed seed {f['seed']}: {f['reason']}")
+        print(f"  {backend.name} failed seed {f['seed']}: {f['reason']}")
     if args.out:
         out = pathlib.Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -254,6 +254,10 @@ class Px4Mission:
 
     #: topics that flow only in the air (on the ground the planner disables the thrust)
     GROUND_SILENT = ('control/thrust', 'control/attitude')
+    #: the firmware's name and the mode it flies the companion's setpoints in
+    #: (:class:`deckland.sitl.ardupilot.ArduPilotMission` is the other backend)
+    NAME = 'PX4'
+    OFFBOARD_MODE = 'OFFBOARD'
 
     def __init__(self, scenario: Scenario, *, keep_ulog: str | None = None, nice: int = 0,
                  hil: HilParams | None = None) -> None:
@@ -503,15 +507,16 @@ def operator_take_off(px4: Px4Mission, monitor, log, abort=None) -> tuple[bool, 
     thrust in PX4's loiter, and the planner's take-off (its IDLE holds the height it latched
     on the ground; TAKEOFF resets the reference to the height flown now and holds the
     approach height). ``monitor``: :class:`deckland.up.MissionMonitor`; ``log(text)``."""
-    log('PX4: EKF origin at the world origin, arm, take off (PX4 AUTO.TAKEOFF)')
+    name = px4.NAME
+    log(f"{name}: EKF origin, arm, take off ({name}'s own take-off)")
     ok, msg = px4.take_off(abort=abort)
-    log(f'PX4 take-off: {msg}')
+    log(f'{name} take-off: {msg}')
     if not ok:
-        return False, f'PX4 take-off failed: {msg}'
+        return False, f'{name} take-off failed: {msg}'
     hover = px4.wait_hover_measured(monitor.node, HOVER_WAIT_S, abort=abort)
-    log(f"bridge: hover thrust measured in PX4's hover {hover:.4f}" if math.isfinite(hover)
-        else f"bridge: no steady hover thrust in PX4's hover within {HOVER_WAIT_S:g} s "
-        '(MPC_THR_HOVER is used)')
+    log(f"bridge: hover thrust measured in {name}'s hover {hover:.4f}" if math.isfinite(hover)
+        else f"bridge: no steady hover thrust in {name}'s hover within {HOVER_WAIT_S:g} s "
+        "(the autopilot's hover parameter is used)")
     for attempt in range(TAKEOFF_TRIGGER_ATTEMPTS):
         ok, msg = monitor.trigger('planner/takeoff', timeout_s=TAKEOFF_TRIGGER_TIMEOUT_S)
         if ok or 'timed out' not in msg:
