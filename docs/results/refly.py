@@ -206,7 +206,10 @@ def first_normal(r: dict[str, Any] | None) -> dict[str, Any] | None:
 
 
 def rows(old: dict[str, Any], new: dict[str, Any]) -> list[tuple[str, str, Any, Any]]:
-    keys = list(new['campaigns']) + [k for k in old['campaigns'] if k not in new['campaigns']]
+    names = list(new['meta']['scenarios']) + [
+        n for n in old['meta']['scenarios'] if n not in new['meta']['scenarios']]
+    keys = sorted(set(new['campaigns']) | set(old['campaigns']), key=lambda k: (
+        names.index(k.split('/')[0]), CONTROLLERS.index(k.split('/')[1])))
     out = []
     for key in keys:
         name, controller = key.split('/')
