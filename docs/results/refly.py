@@ -97,13 +97,12 @@ def tree() -> dict[str, str]:
 
 
 def fly(args: argparse.Namespace) -> dict[str, Any]:
+    from deckland import accel
+    cores = accel.enable(args.cores)   # before anything imports a core module
     from deckland.backends import LocalPool
     from deckland.campaign import run_campaign
     from deckland.runner import RunConfig
 
-    from deckland import accel
-
-    cores = accel.enable(args.cores)
     names = scenario_names()
     only = set(args.only.split(',')) if args.only else None
     out = pathlib.Path(args.out)
