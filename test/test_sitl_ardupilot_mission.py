@@ -101,6 +101,7 @@ def test_up_and_campaign_say_when_arducopter_is_missing(tmp_path):
 
 
 @pytest.mark.sitl
+@pytest.mark.sitl_mission
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.skipif(AP_BIN is None, reason=NO_AP)
