@@ -66,6 +66,7 @@ def _env() -> dict[str, str]:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)   # 46 flights per process, the truthful world costs 2x the CPU
 def test_compiled_cores_fly_bit_identical_traces(tmp_path):
     _ready()
     script = tmp_path / 'fly.py'

@@ -423,10 +423,11 @@ def test_in_process_run_trace():
     assert result.contact_kind != 'none', result.reason
     s = plot.series_from_trace(result.trace, 'run')
     assert s.trigger_s == 0.0 and s.trigger_source.startswith('planner mode')
-    # the trace's truth contact is the world's contact time (trigger at t = 0), within the
-    # 100 Hz trace period (late) and the 1 mm tolerance (early)
+    # the trace's truth height crosses gear height later than the world's first contact: the
+    # lowest foot of a slightly tilted body touches first (1 deg over the 0.2 m arm: ~3.5 mm, at
+    # the final descent's few cm/s about 0.1 s), plus the 100 Hz trace period
     assert s.touchdown_source.startswith('truth height')
-    assert -0.006 <= s.touchdown_s - result.time_to_land_s <= 0.0101, (
+    assert -0.006 <= s.touchdown_s - result.time_to_land_s <= 0.15, (
         s.touchdown_s, result.time_to_land_s)
     # the planner's LANDED (if the run reached it) comes no earlier than the contact
     landed = [t for t, m in s.modes if m == 'LANDED']
