@@ -190,7 +190,7 @@ def test_bridge_flies_px4_sih_through_the_nine_findings(ros_context):
             assert 'already' not in res.message and not core.in_offboard()
             names = [m.data for m in modes]
             assert 'AUTO.LOITER' in names and 'AUTO.LAND' in names
-            assert not any(n.startswith('UNKNOWN') or n[5:].isdigit() for n in names)
+            assert not [n for n in names if n.startswith('UNKNOWN') or n[5:].isdigit()], names
             print(f'PX4 SIH ready {t_ready:.1f} s after spawn; hover measured {hover:.4f} '
                   f'(MPC_THR_HOVER 0.5); PX4 CPU {px4.cpu_s():.1f} s')
         finally:
