@@ -28,7 +28,8 @@ try:
 except ArduPilotNotFoundError as exc:
     AP_BIN, NO_AP = None, str(exc)
 
-pytestmark = [pytest.mark.sitl, pytest.mark.ros, pytest.mark.skipif(AP_BIN is None, reason=NO_AP)]
+pytestmark = [pytest.mark.sitl, pytest.mark.sitl_mission, pytest.mark.ros,
+              pytest.mark.skipif(AP_BIN is None, reason=NO_AP)]
 SITL_PARAMS = {'AHRS_EKF_TYPE': 10, 'RNGFND1_TYPE': 100, 'RNGFND1_ORIENT': 25}
 #: the link monitor's limit here: SITL runs niced on a shared 2-core machine and answers
 #: TIMESYNC late under load (once 329 setpoints withheld at the 60 ms default, then the stop

@@ -252,6 +252,7 @@ class Lockstep:
 
 
 @pytest.mark.sitl
+@pytest.mark.sitl_mission
 @pytest.mark.ros
 @pytest.mark.skipif(AP_BIN is None, reason=NO_AP)
 def test_arducopter_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_context):
