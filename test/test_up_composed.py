@@ -67,7 +67,7 @@ def graph_view(composed: bool, env: dict) -> dict:
         while time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.1)
             names = {n for n in node.get_node_names() if n != 'viewer'}
-            if set(STACK) <= names:
+            if set(STACK) | {'deck_simulator'} <= names:   # every node discovered
                 break
         topics: set = set()
         while time.monotonic() < deadline:                # until discovery has settled
