@@ -104,28 +104,28 @@ def test_inputs_are_decoded_from_the_graph_messages():
     od = Odometry()
     od.pose.pose.position.x, od.pose.pose.position.z = 1.0, 2.0
     od.pose.pose.orientation.w = 1.0
-    viz.apply(s, 'vehicle/odom', od)
+    vizscene.apply(s, 'vehicle/odom', od)
     truth = Odometry()
     truth.pose.pose.position.x, truth.pose.pose.orientation.w = 9.0, 1.0
-    viz.apply(s, 'sim/truth/vehicle', truth)       # the stack's estimate wins
+    vizscene.apply(s, 'sim/truth/vehicle', truth)       # the stack's estimate wins
     assert s.vehicle_m == (1.0, 0.0, 2.0)
     v = VerticalState(True, 1.4, 0.0, 2.0, 0.0, 0.6, 0.0, 0.0, 0, 0.0)
     st = ApronState(5.0, True, True, 0.0, (0.1, 0.0), (0.0, 0.0), (4e-4, 1e-4), (0.1, 0.0),
                     (0.0, 0.0), (1.1, 0.0), (0.0, 0.0), v)
-    viz.apply(s, 'apron/state', fill_apron_state(ApronStateMsg(), st))
+    vizscene.apply(s, 'apron/state', fill_apron_state(ApronStateMsg(), st))
     assert s.estimate_m == (1.1, 0.0, 0.6) and s.tracked
     assert s.estimate_cov_m2 == (4e-4, 0.0, 0.0, 1e-4)
     bad = fill_apron_state(ApronStateMsg(), st)
     bad.apron_position_m = (math.nan, 0.0)
-    viz.apply(s, 'apron/state', bad)              # refused: the last good value stays
+    vizscene.apply(s, 'apron/state', bad)              # refused: the last good value stays
     assert s.estimate_m == (1.1, 0.0, 0.6)
     sp = PoseStamped()
     sp.pose.position.z = 1.5
-    viz.apply(s, 'planner/setpoint', sp)
-    viz.apply(s, 'planner/status', PlannerStatus(mode=PlannerStatus.MODE_FINAL))
+    vizscene.apply(s, 'planner/setpoint', sp)
+    vizscene.apply(s, 'planner/status', PlannerStatus(mode=PlannerStatus.MODE_FINAL))
     assert s.setpoint_m == (0.0, 0.0, 1.5) and s.mode == 'FINAL'
-    assert viz.relative_name('/uav1/apron/state') == 'apron/state'
-    assert viz.relative_name('/apron/statex') is None
+    assert vizscene.relative_name('/uav1/apron/state') == 'apron/state'
+    assert vizscene.relative_name('/apron/statex') is None
 
 
 def test_png_of_a_scene(tmp_path):

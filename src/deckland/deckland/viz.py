@@ -18,72 +18,13 @@ import time
 from typing import Any
 
 from deckland import rosio
-from deckland.vizscene import Item, SceneState, build_scene
+from deckland.vizscene import SCENE_INPUTS, Item, SceneState, apply, build_scene, relative_name
 
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
 SCENE_TOPIC = '/deckland/scene'
 DEFAULT_RATE_HZ = 25.0
 EXCLUDES = ('/rosout', '/parameter_events')
-
-#: Scene inputs: relative topic name → SceneState field it updates (see :func:`apply`).
-SCENE_INPUTS = ('sim/truth/apron', 'sim/truth/vehicle', 'vehicle/odom', 'apron/state',
-                'planner/setpoint', 'planner/status')
-
-
-def _quat(o: Any) -> tuple[float, float, float, float]:
-    return (float(o.w), float(o.x), float(o.y), float(o.z))
-
-
-def _xyz(p: Any) -> tuple[float, float, float]:
-    return (float(p.x), float(p.y), float(p.z))
-
-
-def apply(state: SceneState, rel: str, msg: Any) -> None:
-    """Update ``state`` from one decoded message of scene input ``rel`` (rclpy or rosbags
-    messages alike; non-finite values are ignored, the last good value stays)."""
-    from deckland_common.messages import mode_name
-
-    if rel == 'sim/truth/apron':
-        p = _xyz(msg.pose.pose.position)
-        if all(map(math.isfinite, p)):
-            state.beacon_m = p
-            state.deck_orientation = _quat(msg.pose.pose.orientation)
-    elif rel in ('vehicle/odom', 'sim/truth/vehicle'):
-        if rel == 'sim/truth/vehicle' and state.vehicle_source == 'vehicle/odom':
-            return      # the stack's own estimate wins; the truth only without one
-        p, q = _xyz(msg.pose.pose.position), _quat(msg.pose.pose.orientation)
-        if all(map(math.isfinite, (*p, *q))) and any(q):
-            state.vehicle_m, state.vehicle_orientation = p, q
-            state.vehicle_source = rel
-    elif rel == 'apron/state':
-        from deckland_common.messages import apron_state_from_msg
-        st, _, _ = apron_state_from_msg(msg)
-        if st is None:
-            return
-        v = st.vertical
-        z = v.surface_height_m if v.valid else (state.beacon_m[2] if state.beacon_m else 0.0)
-        state.estimate_m = (st.apron_position_m[0], st.apron_position_m[1], z)
-        cov = msg.rel_position_cov_m2
-        state.estimate_cov_m2 = (float(cov[0]), float(cov[1]), float(cov[2]), float(cov[3]))
-        state.tracked = st.tracked
-        if msg.deck_attitude_valid:
-            state.deck_orientation = _quat(msg.deck_orientation)
-    elif rel == 'planner/setpoint':
-        p = _xyz(msg.pose.position)
-        if all(map(math.isfinite, p)):
-            state.setpoint_m = p
-    elif rel == 'planner/status':
-        state.mode = mode_name(int(msg.mode))
-
-
-def relative_name(topic: str) -> str | None:
-    """The scene input a (possibly namespaced) topic is, or None."""
-    for rel in SCENE_INPUTS:
-        if topic == '/' + rel or topic.endswith('/' + rel):
-            return rel
-    return None
-
 
 # --- foxglove conversion -------------------------------------------------------------------
 
