@@ -96,6 +96,15 @@ def _nan(x: float) -> bool:
     return x != x   # a plain float test (math.isnan is a Python call in the compiled cores)
 
 
+#: Where the deck's position and velocity in :class:`ApronState` come from, best first.
+DECK_SOURCE_BEACON = 'beacon'
+DECK_SOURCE_TELEMETRY = 'telemetry'
+DECK_SOURCE_PREDICTION = 'prediction'
+DECK_SOURCE_NONE = 'none'
+DECK_SOURCES = (DECK_SOURCE_BEACON, DECK_SOURCE_TELEMETRY, DECK_SOURCE_PREDICTION,
+                DECK_SOURCE_NONE)
+
+
 @dataclass(frozen=True, slots=True)
 class ApronState:
     """Everything the planner and controllers need about the apron at time ``t_s``.
@@ -117,6 +126,14 @@ class ApronState:
     apron_velocity_mps: tuple[float, float]    # = vehicle velocity + rel velocity
     vertical: VerticalState
     camera_stamp_s: float = -math.inf
+    # The deck (landing area) as a moving target. ``source`` says where ``apron_position_m`` /
+    # ``apron_velocity_mps`` come from (:data:`DECK_SOURCES`): the tracked beacon, the ship's
+    # telemetry, or a prediction from the last estimate; ``'none'`` before any.
+    source: str = 'none'
+    apron_accel_mps2: tuple[float, float] = (0.0, 0.0)   # world ENU, deck horizontal accel
+    deck_attitude_valid: bool = False                    # deck_rpy_rad / yaw rate known
+    deck_rpy_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)   # deck roll, pitch, yaw (ENU)
+    deck_yaw_rate_radps: float = 0.0
 
     @classmethod
     def untracked(cls, t_s: float) -> ApronState:
@@ -276,6 +293,7 @@ class PlannerOutput:
     searches: int
     reason: str                           # why the last transition happened
     vertical_mode: str = VERTICAL_RELATIVE
+    accel_ff_mps2: tuple[float, float] = (0.0, 0.0)   # deck acceleration feed-forward, ENU
 
     @property
     def precise_xy(self) -> bool:
