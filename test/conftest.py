@@ -12,6 +12,10 @@ import threading
 os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
+# Fast DDS without intra-process delivery, for this process and every graph it starts
+# (isolated_env copies os.environ): see the comment in the profile.
+os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = os.path.join(
+    os.path.dirname(os.path.abspath(__file__)), 'fastdds_profile.xml')
 # The tests patch and inspect the Python sources of the cores: never load the compiled build
 # in this process (test_accel.py runs it in subprocesses of its own).
 os.environ['DECKLAND_CORES'] = 'python'
