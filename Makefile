@@ -84,7 +84,7 @@ run: setup
 	$(VENV)/bin/deckland up --scenario $(SCENARIO) --record runs/latest
 
 test: setup setup-ray accel
-	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test
+	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test -n 2 --dist loadgroup
 
 # Whole missions through the real PX4 / ArduPilot SITL (minutes each, needs a quiet machine).
 test-sitl: setup accel

@@ -9,7 +9,9 @@ import random
 import sys
 import threading
 
-os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 100))
+# (under pytest-xdist each worker draws from its own half of 1-100: no two share a domain)
+os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 50) + 50 * (
+    int(os.environ.get('PYTEST_XDIST_WORKER', 'gw0')[2:] or 0) % 2))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
 # Fast DDS without intra-process delivery, for this process and every graph it starts
@@ -36,12 +38,34 @@ _SESSION_DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 TIMING_MARKERS = ('ros', 'timing')
 
 
+#: markers of tests that start graphs, nodes or firmware: under ``make test`` (pytest-xdist,
+#: ``-n 2 --dist loadgroup``) they run one after another on one worker (group ``graph``)
+#: while the pure tests (group ``cores``) run beside them, niced, on the other
+GRAPH_MARKERS = (*TIMING_MARKERS, 'sitl')
+
+
 def pytest_collection_modifyitems(config, items):
-    """Retry a timing-sensitive test twice before its failure counts (pytest-rerunfailures)."""
+    """Retry a timing-sensitive test twice before its failure counts (pytest-rerunfailures);
+    put every test in the ``graph`` or the ``cores`` group (pytest-xdist)."""
     for item in items:
-        if any(item.get_closest_marker(m) for m in TIMING_MARKERS) \
-                and not item.get_closest_marker('flaky'):
+        timing = any(item.get_closest_marker(m) for m in TIMING_MARKERS)
+        if timing and not item.get_closest_marker('flaky'):
             item.add_marker(pytest.mark.flaky(reruns=2, reruns_delay=1))
+        graph = any(item.get_closest_marker(m) for m in GRAPH_MARKERS)
+        item.add_marker(pytest.mark.xdist_group('graph' if graph else 'cores'))
+
+
+def pytest_runtest_setup(item):
+    """On an xdist worker, the first pure test lowers the worker's priority (niceness 10, its
+    subprocesses too): the graphs' wall-clock deadlines on the other worker come first."""
+    if int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1')) >= 2 and not _NICED:
+        group = item.get_closest_marker('xdist_group')
+        if group is not None and group.args and group.args[0] == 'cores':
+            os.nice(10)
+            _NICED.append(True)
+
+
+_NICED: list[bool] = []
 
 
 def isolated_env(**extra: str) -> dict:
