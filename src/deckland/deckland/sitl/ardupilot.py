@@ -17,18 +17,14 @@ import os
 import pathlib
 import re
 import shutil
-import signal
 import socket
-import subprocess
-import tempfile
 import threading
 import time
-import weakref
 
 from deckland.sitl import SitlNotFoundError, SitlStartError
 from deckland.sitl.mission import Px4Mission as _Px4MissionBase
 from deckland.sitl.mission import _wait
-from deckland.sitl.px4 import _cleanup, _udp_free
+from deckland.sitl.process import GcsOperator, SitlProcess, tcp_free, udp_free
 
 #: ArduPilot SITL ports add 10 per instance (``-I``); 0-9 are used here
 MAX_INSTANCE = 9
@@ -96,18 +92,6 @@ def ports(instance: int) -> dict[str, int]:
             'physics_udp': 9002 + k, 'sim_in_udp': 9003 + k, 'rc_in_udp': 5501 + k}
 
 
-def _tcp_listenable(port: int) -> bool:
-    """Nobody listens on ``port`` (as ArduPilot binds it, with SO_REUSEADDR: the TIME_WAIT
-    connections of a previous instance on the same port do not count)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(('127.0.0.1', port))
-        except OSError:
-            return False
-    return True
-
-
 def _lock_path(i: int) -> str:
     return f'/tmp/deckland-ardupilot-lock-{i}'
 
@@ -125,8 +109,9 @@ def _try_lock(i: int) -> int | None:
         os.close(fd)
         return None
     p = ports(i)
-    if all(_tcp_listenable(p[k]) for k in ('mavlink_tcp', 'serial1_tcp', 'serial2_tcp')) and \
-            all(_udp_free(p[k]) for k in ('physics_udp', 'sim_in_udp', 'rc_in_udp')):
+    tcp = ('mavlink_tcp', 'serial1_tcp', 'serial2_tcp')
+    if all(tcp_free(p[k], reuse_address=True) for k in tcp) and \
+            all(udp_free(p[k]) for k in ('physics_udp', 'sim_in_udp', 'rc_in_udp')):
         return fd
     os.close(fd)
     return None
@@ -136,7 +121,7 @@ def _format_param(v: float) -> str:
     return repr(float(v)) if isinstance(v, float) else str(int(v))
 
 
-class ArduPilotSitl:
+class ArduPilotSitl(SitlProcess):
     """One ArduCopter SITL process (a context manager, or :meth:`start` / :meth:`stop`).
 
     ``model``: ``'quad'`` (ArduPilot's built-in physics) or ``'JSON'`` (an external physics
@@ -147,11 +132,17 @@ class ArduPilotSitl:
     (``logs/*.BIN``) and the console output are copied there at :meth:`stop`.
     """
 
+    NAME = 'ArduCopter'
+    LOG_NAME = 'arducopter.log'
+    PREFIX = 'deckland-ardupilot-'
+    START_ERROR = ArduPilotStartError
+
     def __init__(self, model: str = 'quad', params: dict[str, float] | None = None, *,
                  binary: pathlib.Path | None = None, defaults: pathlib.Path | None = None,
                  home: tuple[float, float, float, float] = CMAC_HOME, speedup: float = 1.0,
                  instance: int | None = None, nice: int = 0, mission_params: bool = True,
                  keep_log_dir: pathlib.Path | None = None) -> None:
+        super().__init__(instance=instance, nice=nice, keep_log_dir=keep_log_dir)
         found = binary if binary is not None else find_ardupilot()
         if found is None:
             raise ArduPilotNotFoundError(
@@ -177,58 +168,15 @@ class ArduPilotSitl:
         if not (isinstance(speedup, int | float) and 0.0 < speedup <= 100.0):
             raise ValueError(f'ArduPilotSitl.speedup = {speedup!r}: must be in (0, 100]')
         self.speedup = float(speedup)
-        self.preferred_instance = instance
-        self.nice = int(nice)
-        self.keep_log_dir = keep_log_dir
-        self.instance: int | None = None
-        self.workdir: pathlib.Path | None = None
-        self.proc: subprocess.Popen | None = None
-        self.started_s = float('nan')
         self._lock_fd: int | None = None
-        self._log = None
 
-    # --- lifecycle ---------------------------------------------------------------------
-
-    def __enter__(self) -> ArduPilotSitl:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    @property
-    def ports(self) -> dict[str, int]:
-        if self.instance is None:
-            raise RuntimeError('ArduPilotSitl not started')
-        return ports(self.instance)
+    def _ports_of(self, instance: int) -> dict[str, int]:
+        return ports(instance)
 
     @property
     def connection(self) -> str:
         """pymavlink device string of SERIAL0 (``tcp:127.0.0.1:5760`` for instance 0)."""
         return f"tcp:127.0.0.1:{self.ports['mavlink_tcp']}"
-
-    @property
-    def log_path(self) -> pathlib.Path:
-        assert self.workdir is not None
-        return self.workdir / 'arducopter.log'
-
-    def log_text(self) -> str:
-        try:
-            return self.log_path.read_text(errors='replace')
-        except OSError:
-            return ''
-
-    def start(self) -> None:
-        """Make the working directory, take a free instance and spawn ArduCopter (returns at
-        once; it waits for a client on :attr:`connection` before it boots)."""
-        if self.proc is not None:
-            raise RuntimeError('ArduPilotSitl already started')
-        self.workdir = pathlib.Path(tempfile.mkdtemp(prefix='deckland-ardupilot-'))
-        try:
-            self._spawn()
-        except BaseException:
-            self.stop()
-            raise
 
     def _take_instance(self) -> int:
         pref = self.preferred_instance
@@ -250,100 +198,25 @@ class ArduPilotSitl:
         parm.write_text(''.join(f'{k} {_format_param(v)}\n' for k, v in self.params.items()))
         defaults = ([str(self.defaults)] if self.defaults is not None else []) + [str(parm)]
         lat, lon, alt, hdg = self.home
-        cmd = [str(self.binary), '--model', self.model, '--speedup', f'{self.speedup:g}',
-               '--defaults', ','.join(defaults), '-I', str(self.instance),
-               '--home', f'{lat:.7f},{lon:.7f},{alt:g},{hdg:g}', '-w']
-        if self.nice:
-            cmd = ['nice', '-n', str(self.nice), *cmd]
-        setpriv = shutil.which('setpriv')
-        if setpriv:
-            # SIGKILL to ArduCopter when the thread that started it dies (a killed test run
-            # must not leave it holding the instance's ports; PR_SET_PDEATHSIG)
-            cmd = [setpriv, '--pdeathsig', 'KILL', '--', *cmd]
-        self._log = open(self.log_path, 'wb')  # noqa: SIM115 (closed in stop())
-        self.started_s = time.monotonic()
-        self.proc = subprocess.Popen(cmd, cwd=self.workdir, stdin=subprocess.DEVNULL,
-                                     stdout=self._log, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
-        self._finalizer = weakref.finalize(self, _cleanup, self.proc.pid, str(self.workdir))
-
-    def wait_for_log(self, pattern: str, timeout_s: float) -> float:
-        """Seconds from the spawn until ``pattern`` (a regex) appears in ArduCopter's output;
-        ArduPilotStartError when it exits or the timeout passes first."""
-        rx = re.compile(pattern)
-        end = time.monotonic() + timeout_s
-        while True:
-            text = self.log_text()
-            if rx.search(text):
-                return time.monotonic() - self.started_s
-            if self.proc is None or self.proc.poll() is not None:
-                rc = self.proc.returncode if self.proc else '?'
-                raise ArduPilotStartError(f'ArduCopter exited ({rc}) before {pattern!r}; its '
-                                          f'output ends:\n{text[-2000:]}')
-            if time.monotonic() > end:
-                raise ArduPilotStartError(f'ArduCopter not at {pattern!r} after {timeout_s:g} '
-                                          f's; its output ends:\n{text[-2000:]}')
-            time.sleep(0.05)
+        self._popen([str(self.binary), '--model', self.model, '--speedup', f'{self.speedup:g}',
+                     '--defaults', ','.join(defaults), '-I', str(self.instance),
+                     '--home', f'{lat:.7f},{lon:.7f},{alt:g},{hdg:g}', '-w'], cwd=self.workdir)
 
     def wait_listening(self, timeout_s: float = 10.0) -> float:
         """Seconds from the spawn until SERIAL0 accepts connections ("Waiting for
         connection")."""
         return self.wait_for_log(r'Serial port 0 on TCP port|Waiting for connection', timeout_s)
 
-    def cpu_s(self) -> float:
-        """CPU time (user + system, s) of the ArduCopter process so far."""
-        if self.proc is None:
-            return float('nan')
-        try:
-            fields = pathlib.Path(f'/proc/{self.proc.pid}/stat').read_text().rsplit(')', 1)[1]
-        except OSError:
-            return float('nan')
-        f = fields.split()
-        return (int(f[11]) + int(f[12])) / os.sysconf('SC_CLK_TCK')
-
-    def kill(self) -> None:
-        """Kill the process now, keeping the directory (a crash or a reboot in a test)."""
-        proc = self.proc
-        if proc is not None and proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.killpg(proc.pid, signal.SIGKILL)
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.wait(timeout=2.0)
-
-    def stop(self) -> None:
-        """Kill ArduCopter (SIGTERM, then SIGKILL to its process group), release the
-        instance and remove the working directory (logs copied to ``keep_log_dir`` first).
-        Safe to call more than once."""
-        proc, self.proc = self.proc, None
-        fin = getattr(self, '_finalizer', None)
-        if fin is not None:
-            fin.detach()
-        if proc is not None:
-            for sig in (signal.SIGTERM, signal.SIGKILL):
-                if proc.poll() is not None:
-                    break
-                with contextlib.suppress(ProcessLookupError, PermissionError):
-                    os.killpg(proc.pid, sig)
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    proc.wait(timeout=2.0)
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.killpg(proc.pid, signal.SIGKILL)
-        if self._log is not None:
-            self._log.close()
-            self._log = None
+    def _release(self) -> None:
         if self._lock_fd is not None:
             os.close(self._lock_fd)
             self._lock_fd = None
-        if self.workdir is not None:
-            if self.keep_log_dir is not None:
-                dest = pathlib.Path(self.keep_log_dir)
-                dest.mkdir(parents=True, exist_ok=True)
-                for log in (self.workdir / 'logs').glob('*.BIN'):
-                    shutil.copy2(log, dest / log.name)
-                with contextlib.suppress(OSError):
-                    shutil.copy2(self.log_path, dest / 'arducopter.log')
-            shutil.rmtree(self.workdir, ignore_errors=True)
-            self.workdir = None
+
+    def _keep_logs(self, dest: pathlib.Path) -> None:
+        assert self.workdir is not None
+        for log in (self.workdir / 'logs').glob('*.BIN'):
+            shutil.copy2(log, dest / log.name)
+        super()._keep_logs(dest)
 
 
 # --- deckland up --autopilot ardupilot-sitl -------------------------------------------------
@@ -401,38 +274,20 @@ def failsafe_check(report: dict, params: dict) -> dict:
     return safe_action_check(report, 'ardupilot', ArduPilotMission.OFFBOARD_MODE, 'LAND')
 
 
-class ArduPilotOperator:
+class ArduPilotOperator(GcsOperator):
     """A ground station on ArduCopter's SERIAL1 (TCP 5762 + 10 × instance), as the PX4
-    mission's :class:`~deckland.sitl.mission.Operator`: :attr:`armed`, :attr:`mode`,
-    :attr:`landed_state`, :attr:`local_ned`, :attr:`origin`, :attr:`modes` (monotonic time,
-    ArduCopter mode name, armed) on every change, :attr:`texts`, :attr:`acks`,
-    :attr:`params`. Its system id (255) is not ``SYSID_MYGCS``: the GCS failsafe watches the
-    bridge, not this link."""
+    mission's :class:`~deckland.sitl.mission.Operator`, over TCP (reconnected when
+    ArduCopter comes back). Its system id (255) is not ``SYSID_MYGCS``: the GCS failsafe
+    watches the bridge, not this link."""
+
+    THREAD_NAME = 'ardupilot_operator'
 
     def __init__(self, port: int, system_id: int = 1) -> None:
-        from pymavlink.dialects.v20 import common as mavlink
-        self._mavlink = mavlink
+        super().__init__(system_id)
         self.port = port
-        self.target = system_id
         self.sock: socket.socket | None = None
-        self.mav = mavlink.MAVLink(self, srcSystem=255, srcComponent=190)
-        self.rx = mavlink.MAVLink(None)
-        self.rx.robust_parsing = True
-        self.heartbeats = 0
-        self.armed = False
-        self.mode = ''
-        self.landed_state = 0
-        self.local_ned: tuple[float, float, float] | None = None
-        self.origin: tuple[int, int, int] | None = None
-        self.modes: list[tuple[float, str, bool]] = []
-        self.texts: list[tuple[float, str]] = []
-        self.acks: list[tuple[float, int, int]] = []
-        self.params: dict[str, float] = {}
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name='ardupilot_operator',
-                                        daemon=True)
-        self._thread.start()
+        self._start()
 
     def write(self, data: bytes) -> None:      # pymavlink's file
         with self._lock:
@@ -454,67 +309,34 @@ class ArduPilotOperator:
             self.sock = s
         return True
 
-    def _run(self) -> None:
-        mavlink = self._mavlink
-        next_hb = 0.0
-        while not self._stop.is_set():
-            if self.sock is None and not self._connect():
-                self._stop.wait(0.5)
-                continue
-            now = time.monotonic()
-            if now >= next_hb:
-                next_hb = now + 1.0
-                self.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
-                                        0, 0, mavlink.MAV_STATE_ACTIVE)
-            try:
-                data = self.sock.recv(65536)
-            except (TimeoutError, BlockingIOError):
-                continue
-            except OSError:
-                data = b''
-            if not data:          # ArduCopter gone: try again later
-                with self._lock:
-                    with contextlib.suppress(OSError):
-                        self.sock.close()
-                    self.sock = None
-                continue
-            try:
-                msgs = self.rx.parse_buffer(data) or []
-            except Exception:
-                continue
-            for m in msgs:
-                self._on_message(time.monotonic(), m)
+    def _recv(self) -> bytes | None:
+        if self.sock is None and not self._connect():
+            self._stop.wait(0.5)
+            return None
+        assert self.sock is not None
+        try:
+            data = self.sock.recv(65536)
+        except (TimeoutError, BlockingIOError):
+            return None
+        except OSError:
+            data = b''
+        if not data:          # ArduCopter gone: try again later
+            with self._lock:
+                with contextlib.suppress(OSError):
+                    self.sock.close()
+                self.sock = None
+        return data
 
-    def _on_message(self, now: float, m) -> None:
-        from mavlink_bridge.conversions import MAV_MODE_FLAG_SAFETY_ARMED, ardupilot_mode_name
-        mavlink = self._mavlink
-        kind = m.get_type()
-        if kind == 'HEARTBEAT' and m.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
-            if self.heartbeats == 0:
-                self.stream(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 5.0)
-                self.stream(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 10.0)
-            self.heartbeats += 1
-            armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
-            mode = ardupilot_mode_name(m.custom_mode)
-            if mode != self.mode or armed != self.armed or not self.modes:
-                self.modes.append((now, mode, armed))
-            self.mode, self.armed = mode, armed
-        elif kind == 'EXTENDED_SYS_STATE':
-            self.landed_state = int(m.landed_state)
-        elif kind == 'LOCAL_POSITION_NED':
-            self.local_ned = (float(m.x), float(m.y), float(m.z))
-        elif kind == 'GPS_GLOBAL_ORIGIN':
-            self.origin = (int(m.latitude), int(m.longitude), int(m.altitude))
-        elif kind == 'STATUSTEXT':
-            self.texts.append((now, str(m.text)))
-        elif kind == 'COMMAND_ACK':
-            self.acks.append((now, int(m.command), int(m.result)))
-        elif kind == 'PARAM_VALUE':
-            self.params[str(m.param_id)] = float(m.param_value)   # ArduPilot: plain floats
+    def _mode_of(self, m) -> str | None:
+        from mavlink_bridge.conversions import ardupilot_mode_name
+        if m.autopilot != self._mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
+            return None
+        return ardupilot_mode_name(m.custom_mode)
 
-    def command(self, cmd: int, *params: float) -> None:
-        p = [float(v) for v in params] + [0.0] * (7 - len(params))
-        self.mav.command_long_send(self.target, 1, cmd, 0, *p)
+    def _on_heartbeat(self) -> None:
+        mavlink = self._mavlink
+        self.stream(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 5.0)
+        self.stream(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 10.0)
 
     def stream(self, msg_id: int, rate_hz: float) -> None:
         self.command(MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / rate_hz)
@@ -522,24 +344,7 @@ class ArduPilotOperator:
     def set_mode(self, custom_mode: int) -> None:
         self.command(MAV_CMD_DO_SET_MODE, 1, custom_mode)
 
-    def read_params(self, names, timeout_s: float = 5.0) -> dict[str, float]:
-        """ArduCopter's values of ``names`` (PARAM_REQUEST_READ, repeated for the missing)."""
-        names = list(names)
-        for name in names:
-            self.params.pop(name, None)
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            missing = [n for n in names if n not in self.params]
-            if not missing:
-                break
-            for name in missing:
-                self.mav.param_request_read_send(self.target, 1, name.encode('ascii'), -1)
-            time.sleep(0.3)
-        return {n: self.params[n] for n in names if n in self.params}
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1.0)
+    def _close_transport(self) -> None:
         with self._lock:
             if self.sock is not None:
                 self.sock.close()

@@ -16,8 +16,6 @@ Each PX4 runs niced (10) in a fresh directory; the JSON goes to ``--out`` and st
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
 import pathlib
@@ -30,20 +28,8 @@ import time
 
 os.environ.setdefault('MAVLINK20', '1')
 
+from deckland.sitl.process import UdpWriter, measure_main, proc_cpu_s
 from deckland.sitl.px4 import NONE_IRIS, SIH_QUADX, Px4Sitl
-
-
-def _proc_cpu_s(pid: int) -> float:
-    f = pathlib.Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(f[11]) + int(f[12])) / os.sysconf('SC_CLK_TCK')
-
-
-class _Writer:
-    def __init__(self, sock: socket.socket, addr: tuple[str, int]) -> None:
-        self.sock, self.addr = sock, addr
-
-    def write(self, data: bytes) -> None:
-        self.sock.sendto(data, self.addr)
 
 
 def link_rates(seconds: float) -> dict:
@@ -58,7 +44,7 @@ def link_rates(seconds: float) -> dict:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.bind(('127.0.0.1', p['onboard_remote']))
         sock.settimeout(0.02)
-        mav = mavlink.MAVLink(_Writer(sock, ('127.0.0.1', p['onboard_local'])),
+        mav = mavlink.MAVLink(UdpWriter(sock, ('127.0.0.1', p['onboard_local'])),
                               srcSystem=px4.system_id, srcComponent=191)
         rx = mavlink.MAVLink(None)
         core = BridgeCore(BridgeParams(trim_telemetry=False))
@@ -115,9 +101,9 @@ def bridge_cpu(seconds: float) -> dict:
                                     stderr=subprocess.DEVNULL)
             try:
                 time.sleep(6.0)
-                c0, t0, p0 = _proc_cpu_s(node.pid), time.monotonic(), px4.cpu_s()
+                c0, t0, p0 = proc_cpu_s(node.pid), time.monotonic(), px4.cpu_s()
                 time.sleep(seconds)
-                c1, t1, p1 = _proc_cpu_s(node.pid), time.monotonic(), px4.cpu_s()
+                c1, t1, p1 = proc_cpu_s(node.pid), time.monotonic(), px4.cpu_s()
             finally:
                 node.terminate()
                 node.wait(timeout=10)
@@ -156,7 +142,7 @@ def hil(seconds: float) -> dict:
             out['ground_sim_per_wall'] = round((world.t_s - s0) / (time.monotonic() - w0), 2)
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             sock.bind(('127.0.0.1', 0))
-            mav = mavlink.MAVLink(_Writer(sock, ('127.0.0.1', px4.ports['gcs_local'])),
+            mav = mavlink.MAVLink(UdpWriter(sock, ('127.0.0.1', px4.ports['gcs_local'])),
                                   srcSystem=255, srcComponent=190)
 
             def cmd(c: int, *p: float) -> None:
@@ -194,26 +180,8 @@ def hil(seconds: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m deckland.sitl.measure', description=__doc__)
-    ap.add_argument('what', nargs='*', help='link, bridge_cpu, hil (default: all three)')
-    ap.add_argument('--seconds', type=float, default=20.0)
-    ap.add_argument('--out', type=pathlib.Path)
-    args = ap.parse_args(argv)
-    bad = set(args.what) - {'link', 'bridge_cpu', 'hil'}
-    if bad:
-        ap.error(f'unknown measurement(s) {sorted(bad)}: choose from link, bridge_cpu, hil')
-    res: dict = {'load_before': os.getloadavg()[0]}
-    for what in args.what or ['link', 'bridge_cpu', 'hil']:
-        res[what] = {'link': link_rates, 'bridge_cpu': bridge_cpu, 'hil': hil}[what](
-            args.seconds)
-        print(what, json.dumps(res[what]), flush=True)
-    res['load_after'] = os.getloadavg()[0]
-    text = json.dumps(res, indent=2, sort_keys=True)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + '\n')
-    print(text)
-    return 0
+    runs = {'link': link_rates, 'bridge_cpu': bridge_cpu, 'hil': hil}
+    return measure_main('python -m deckland.sitl.measure', __doc__, runs, argv)
 
 
 if __name__ == '__main__':

@@ -11,8 +11,6 @@ process. Each ArduCopter runs niced (10) in a fresh directory.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import os
 import pathlib
@@ -25,11 +23,7 @@ import time
 os.environ.setdefault('MAVLINK20', '1')
 
 from deckland.sitl.ardupilot import ArduPilotSitl
-
-
-def _proc_cpu_s(pid: int) -> float:
-    f = pathlib.Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(f[11]) + int(f[12])) / os.sysconf('SC_CLK_TCK')
+from deckland.sitl.process import measure_main, proc_cpu_s
 
 
 def _connect(sitl: ArduPilotSitl):
@@ -87,9 +81,9 @@ def bridge_cpu(seconds: float) -> dict:
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             time.sleep(8.0)
-            c0, t0, a0 = _proc_cpu_s(node.pid), time.monotonic(), sitl.cpu_s()
+            c0, t0, a0 = proc_cpu_s(node.pid), time.monotonic(), sitl.cpu_s()
             time.sleep(seconds)
-            c1, t1, a1 = _proc_cpu_s(node.pid), time.monotonic(), sitl.cpu_s()
+            c1, t1, a1 = proc_cpu_s(node.pid), time.monotonic(), sitl.cpu_s()
         finally:
             node.terminate()
             node.wait(timeout=10)
@@ -235,29 +229,8 @@ def json_physics(seconds: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog='python -m deckland.sitl.measure_ardupilot',
-                                 description=__doc__)
-    ap.add_argument('what', nargs='*', help='boot, bridge_cpu, json (default: all three)')
-    ap.add_argument('--seconds', type=float, default=20.0)
-    ap.add_argument('--out', type=pathlib.Path)
-    args = ap.parse_args(argv)
     runs = {'boot': boot, 'bridge_cpu': bridge_cpu, 'json': json_physics}
-    bad = set(args.what) - set(runs)
-    if bad:
-        ap.error(f'unknown measurement(s) {sorted(bad)}: choose from {", ".join(runs)}')
-    if not (math.isfinite(args.seconds) and args.seconds > 0.0):
-        ap.error('--seconds must be > 0')
-    res: dict = {'load_before': os.getloadavg()[0]}
-    for what in args.what or list(runs):
-        res[what] = runs[what](args.seconds)
-        print(what, json.dumps(res[what]), flush=True)
-    res['load_after'] = os.getloadavg()[0]
-    text = json.dumps(res, indent=2, sort_keys=True)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + '\n')
-    print(text)
-    return 0
+    return measure_main('python -m deckland.sitl.measure_ardupilot', __doc__, runs, argv)
 
 
 if __name__ == '__main__':

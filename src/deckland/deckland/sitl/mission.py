@@ -16,7 +16,6 @@ import math
 import os
 import pathlib
 import socket
-import threading
 import time
 from typing import Any
 
@@ -26,13 +25,13 @@ from deck_simulator.faults import FaultSet
 from deck_simulator.px4_hil import HilParams, px4_params
 from deck_simulator.scenario import Scenario
 from mavlink_bridge.conversions import (
-    MAV_MODE_FLAG_SAFETY_ARMED,
     param_value_from_wire,
     param_value_to_wire,
     px4_mode_name,
 )
 from pymavlink.dialects.v20 import common as mavlink
 
+from deckland.sitl.process import GcsOperator, UdpWriter
 from deckland.sitl.px4 import NONE_IRIS, ZERO_FLOAT, Px4Sitl
 
 #: the physics rate of the simulator with PX4: two sub-steps per 250 Hz lockstep period
@@ -92,91 +91,42 @@ def wire_faults(scenario: Scenario) -> bool:
     return any(f.type in WIRE_FAULT_TYPES for f in scenario.faults)
 
 
-class _Writer:
-    def __init__(self, sock: socket.socket, addr: tuple[str, int]) -> None:
-        self.sock, self.addr = sock, addr
-
-    def write(self, data: bytes) -> None:
-        with contextlib.suppress(OSError):
-            self.sock.sendto(data, self.addr)
-
-
-class Operator:
+class Operator(GcsOperator):
     """A ground station on PX4's GCS link (UDP 18570 + instance): what an operator does and
     sees. PX4 answers whoever sent to it last, so a GCS heartbeat (1 Hz) brings its GCS
-    telemetry here: :attr:`armed`, :attr:`mode`, :attr:`landed_state`, the local position,
-    and :attr:`modes` (monotonic time, PX4 mode name, armed) on every change."""
+    telemetry here (:class:`~deckland.sitl.process.GcsOperator`)."""
+
+    THREAD_NAME = 'px4_operator'
 
     def __init__(self, port: int, system_id: int) -> None:
+        super().__init__(system_id)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(('127.0.0.1', 0))
         self.sock.settimeout(0.05)
-        self.mav = mavlink.MAVLink(_Writer(self.sock, ('127.0.0.1', port)), srcSystem=255,
-                                   srcComponent=190)
-        self.rx = mavlink.MAVLink(None)
-        self.rx.robust_parsing = True
-        self.target = system_id
-        self.heartbeats = 0
-        self.armed = False
-        self.mode = ''
-        self.landed_state = 0
-        self.local_ned: tuple[float, float, float] | None = None
-        self.origin: tuple[int, int, int] | None = None
-        self.home_ned: tuple[float, float, float] | None = None   # PX4's home, local NED
-        self.modes: list[tuple[float, str, bool]] = []
-        self.texts: list[tuple[float, str]] = []
-        self.acks: list[tuple[float, int, int]] = []
-        self.params: dict[str, tuple[float, int]] = {}     # name -> (value, MAV_PARAM_TYPE)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name='px4_operator', daemon=True)
-        self._thread.start()
+        self._writer = UdpWriter(self.sock, ('127.0.0.1', port))
+        self._start()
 
-    def _run(self) -> None:
-        next_hb = 0.0
-        while not self._stop.is_set():
-            now = time.monotonic()
-            if now >= next_hb:
-                next_hb = now + 1.0
-                self.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
-                                        0, 0, mavlink.MAV_STATE_ACTIVE)
-            try:
-                data = self.sock.recv(65535)
-            except (TimeoutError, OSError):
-                continue
-            try:
-                msgs = self.rx.parse_buffer(data) or []
-            except Exception:
-                continue
-            for m in msgs:
-                self._on_message(time.monotonic(), m)
+    def write(self, data: bytes) -> None:      # pymavlink's file
+        self._writer.write(data)
 
-    def _on_message(self, now: float, m: Any) -> None:
-        kind = m.get_type()
-        if kind == 'HEARTBEAT' and m.get_srcComponent() == 1 and \
-                m.autopilot == mavlink.MAV_AUTOPILOT_PX4:
-            self.heartbeats += 1
-            armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
-            mode = px4_mode_name(m.custom_mode)
-            if mode != self.mode or armed != self.armed or not self.modes:
-                self.modes.append((now, mode, armed))
-            self.mode, self.armed = mode, armed
-        elif kind == 'EXTENDED_SYS_STATE':
-            self.landed_state = int(m.landed_state)
-        elif kind == 'LOCAL_POSITION_NED':
-            self.local_ned = (float(m.x), float(m.y), float(m.z))
-        elif kind == 'HOME_POSITION':
-            self.home_ned = (float(m.x), float(m.y), float(m.z))
-        elif kind == 'GPS_GLOBAL_ORIGIN':
-            self.origin = (int(m.latitude), int(m.longitude), int(m.altitude))
-        elif kind == 'STATUSTEXT':
-            self.texts.append((now, str(m.text)))
-        elif kind == 'COMMAND_ACK':
-            self.acks.append((now, int(m.command), int(m.result)))
-        elif kind == 'PARAM_VALUE':
-            # PX4 sends integers bytewise in the float field (MAV_PROTOCOL_CAPABILITY_PARAM_
-            # ENCODE_BYTEWISE)
-            self.params[str(m.param_id)] = (param_value_from_wire(
-                m.param_value, m.param_type, True), int(m.param_type))
+    def _recv(self) -> bytes | None:
+        try:
+            return self.sock.recv(65535)
+        except (TimeoutError, OSError):
+            return None
+
+    def _mode_of(self, m: Any) -> str | None:
+        if m.get_srcComponent() != 1 or m.autopilot != mavlink.MAV_AUTOPILOT_PX4:
+            return None
+        return px4_mode_name(m.custom_mode)
+
+    def _param_of(self, m: Any) -> float:
+        # PX4 sends integers bytewise in the float field (MAV_PROTOCOL_CAPABILITY_PARAM_
+        # ENCODE_BYTEWISE)
+        return param_value_from_wire(m.param_value, m.param_type, True)
+
+    def _close_transport(self) -> None:
+        self.sock.close()
 
     #: the 50 Hz streams of PX4's GCS link an operator does not read here (SET_MESSAGE_INTERVAL
     #: -1; v1.16 sends ~370 messages/s on this link, ~300 of them these), and
@@ -193,26 +143,6 @@ class Operator:
         self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                      mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 100_000)
 
-    def command(self, cmd: int, *params: float) -> None:
-        p = [float(v) for v in params] + [0.0] * (7 - len(params))
-        self.mav.command_long_send(self.target, 1, cmd, 0, *p)
-
-    def read_params(self, names, timeout_s: float = 5.0) -> dict[str, float]:
-        """PX4's values of ``names`` (PARAM_REQUEST_READ, repeated for the missing ones)."""
-        names = list(names)
-        for name in names:
-            self.params.pop(name, None)
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            missing = [n for n in names if n not in self.params]
-            if not missing:
-                break
-            for name in missing:
-                self.mav.param_request_read_send(self.target, 1, name.encode('ascii'), -1)
-                time.sleep(0.005)
-            time.sleep(0.3)
-        return {n: self.params[n][0] for n in names if n in self.params}
-
     def set_param(self, name: str, value: float) -> None:
         """PARAM_SET with PX4's type for ``name`` (read first)."""
         ptype = self.params[name][1]
@@ -225,11 +155,6 @@ class Operator:
                                             round(hil.home_lon_deg * 1e7),
                                             round(hil.home_alt_m * 1000.0), 0)
         self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1.0)
-        self.sock.close()
 
 
 def _wait(pred, timeout_s: float, abort=None, step_s: float = 0.05) -> bool:

@@ -11,20 +11,15 @@ them at boot), and always kills the process group and removes the directory on
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import os
 import pathlib
 import re
 import shutil
 import signal
-import socket
-import subprocess
-import tempfile
-import time
-import weakref
 
 from deckland.sitl import SitlNotFoundError, SitlStartError
+from deckland.sitl.process import SitlProcess, tcp_free, udp_free
 
 #: airframes used here (PX4 v1.16 ROMFS): SIH quadrotor, built-in physics; Iris for an
 #: external simulator over the Simulator MAVLink API (TCP 4560 + instance)
@@ -34,13 +29,6 @@ MAX_INSTANCE = 9                  # PX4's port scheme: remote 14540 + i only up 
 
 _REPO_ROOT = pathlib.Path(__file__).resolve().parents[4]
 
-
-def _cleanup(pid: int, workdir: str) -> None:
-    """Last resort at interpreter exit (a Px4Sitl never stopped): kill the group, remove the
-    directory."""
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        os.killpg(pid, signal.SIGKILL)
-    shutil.rmtree(workdir, ignore_errors=True)
 
 
 class Px4NotFoundError(SitlNotFoundError):
@@ -104,24 +92,6 @@ def ports(instance: int) -> dict[str, int]:
             'payload_local': 14280 + instance, 'gimbal_local': 13030 + instance}
 
 
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.bind(('127.0.0.1', port))
-        except OSError:
-            return False
-    return True
-
-
-def _tcp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        try:
-            s.bind(('127.0.0.1', port))
-        except OSError:
-            return False
-    return True
-
-
 def _instance_free(i: int) -> bool:
     """No PX4 holds the instance's lock (``/tmp/px4_lock-i``, flock) and its ports are free
     (other developers and other test sessions run PX4 on the same machine)."""
@@ -138,9 +108,9 @@ def _instance_free(i: int) -> bool:
     finally:
         os.close(fd)
     p = ports(i)
-    return (all(_udp_free(p[k]) for k in ('onboard_local', 'onboard_remote', 'gcs_local',
+    return (all(udp_free(p[k]) for k in ('onboard_local', 'onboard_remote', 'gcs_local',
                                            'payload_local', 'gimbal_local'))
-            and _tcp_free(p['simulator_tcp']))
+            and tcp_free(p['simulator_tcp']))
 
 
 def pick_instance(preferred: int | None = None) -> int:
@@ -153,7 +123,7 @@ def pick_instance(preferred: int | None = None) -> int:
     raise Px4StartError('no free PX4 instance (0-9): every lock or port is taken')
 
 
-class Px4Sitl:
+class Px4Sitl(SitlProcess):
     """One PX4 SITL process (use as a context manager, or call :meth:`start` / :meth:`stop`).
 
     ``airframe``: ``(SYS_AUTOSTART, PX4_SIM_MODEL)``, e.g. :data:`SIH_QUADX`, :data:`NONE_IRIS`.
@@ -164,11 +134,18 @@ class Px4Sitl:
     ``keep_log_dir`` copies the ULog files there at :meth:`stop`.
     """
 
+    NAME = 'PX4'
+    LOG_NAME = 'px4.log'
+    PREFIX = 'deckland-px4-'
+    START_ERROR = Px4StartError
+    STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
+
     def __init__(self, airframe: tuple[int, str] = SIH_QUADX,
                  params: dict[str, float | int] | None = None, *, root: pathlib.Path | None
                  = None, instance: int | None = None, nice: int = 0, logging: bool = False,
                  keep_log_dir: pathlib.Path | None = None, extra_env: dict[str, str] | None
                  = None) -> None:
+        super().__init__(instance=instance, nice=nice, keep_log_dir=keep_log_dir)
         found = root if root is not None else require_px4()
         self.root = pathlib.Path(found)
         self.airframe = airframe
@@ -178,59 +155,16 @@ class Px4Sitl:
                 raise ValueError(f'Px4Sitl.params: {k!r} is not a PX4 parameter name')
             if isinstance(v, bool) or not isinstance(v, int | float):
                 raise ValueError(f'Px4Sitl.params[{k!r}] = {v!r}: must be a number')
-        self.preferred_instance = instance
-        self.nice = int(nice)
         self.logging = bool(logging or keep_log_dir is not None)
-        self.keep_log_dir = keep_log_dir
         self.extra_env = dict(extra_env or {})
-        self.instance: int | None = None
-        self.workdir: pathlib.Path | None = None
-        self.proc: subprocess.Popen | None = None
-        self.started_s = float('nan')
-        self._log = None
 
-    # --- lifecycle ---------------------------------------------------------------------
-
-    def __enter__(self) -> Px4Sitl:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    @property
-    def ports(self) -> dict[str, int]:
-        if self.instance is None:
-            raise RuntimeError('Px4Sitl not started')
-        return ports(self.instance)
+    def _ports_of(self, instance: int) -> dict[str, int]:
+        return ports(instance)
 
     @property
     def system_id(self) -> int:
         """PX4's MAV_SYS_ID: rcS sets instance + 1."""
         return (self.instance or 0) + 1
-
-    @property
-    def log_path(self) -> pathlib.Path:
-        assert self.workdir is not None
-        return self.workdir / 'px4.log'
-
-    def log_text(self) -> str:
-        try:
-            return self.log_path.read_text(errors='replace')
-        except OSError:
-            return ''
-
-    def start(self) -> None:
-        """Make the working directory, pick an instance and spawn PX4 (returns at once;
-        :meth:`wait_for_log` waits for a line such as ``Ready for takeoff``)."""
-        if self.proc is not None:
-            raise RuntimeError('Px4Sitl already started')
-        self.workdir = pathlib.Path(tempfile.mkdtemp(prefix='deckland-px4-'))
-        try:
-            self._spawn()
-        except BaseException:
-            self.stop()
-            raise
 
     def _spawn(self) -> None:
         assert self.workdir is not None
@@ -258,78 +192,11 @@ class Px4Sitl:
         for k, v in params.items():
             env[f'PX4_PARAM_{k}'] = px4_param_text(v)
         env.update(self.extra_env)
-        cmd = [str(bindir / 'px4'), '-d', '-i', str(self.instance), str(self.root / 'etc')]
-        if self.nice:
-            cmd = ['nice', '-n', str(self.nice), *cmd]
-        setpriv = shutil.which('setpriv')
-        if setpriv:
-            # SIGKILL to PX4 when the thread that started it dies (a killed test run must not
-            # leave PX4 holding its instance's ports; util-linux setpriv, PR_SET_PDEATHSIG)
-            cmd = [setpriv, '--pdeathsig', 'KILL', '--', *cmd]
-        self._log = open(self.log_path, 'wb')  # noqa: SIM115 (closed in stop())
-        self.started_s = time.monotonic()
-        self.proc = subprocess.Popen(cmd, cwd=rootfs, env=env, stdin=subprocess.DEVNULL,
-                                     stdout=self._log, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
-        self._finalizer = weakref.finalize(self, _cleanup, self.proc.pid, str(self.workdir))
+        self._popen([str(bindir / 'px4'), '-d', '-i', str(self.instance),
+                     str(self.root / 'etc')], cwd=rootfs, env=env)
 
-    def wait_for_log(self, pattern: str, timeout_s: float) -> float:
-        """Seconds from the spawn until ``pattern`` (a regex) appears in PX4's output;
-        Px4StartError when PX4 exits or the timeout passes first."""
-        rx = re.compile(pattern)
-        end = time.monotonic() + timeout_s
-        while True:
-            text = self.log_text()
-            if rx.search(text):
-                return time.monotonic() - self.started_s
-            if self.proc is None or self.proc.poll() is not None:
-                raise Px4StartError(f'PX4 exited ({self.proc.returncode if self.proc else "?"}) '
-                                    f'before {pattern!r}; its log ends:\n{text[-2000:]}')
-            if time.monotonic() > end:
-                raise Px4StartError(f'PX4 not at {pattern!r} after {timeout_s:g} s; its log '
-                                    f'ends:\n{text[-2000:]}')
-            time.sleep(0.05)
-
-    def cpu_s(self) -> float:
-        """CPU time (user + system, s) of the PX4 process so far (its threads included)."""
-        if self.proc is None:
-            return float('nan')
-        try:
-            fields = pathlib.Path(f'/proc/{self.proc.pid}/stat').read_text().rsplit(')', 1)[1]
-        except OSError:
-            return float('nan')
-        f = fields.split()
-        return (int(f[11]) + int(f[12])) / os.sysconf('SC_CLK_TCK')
-
-    def stop(self) -> None:
-        """Kill PX4 (its process group: the daemon and its shell clients) and remove the
-        working directory; the ULog files are copied to ``keep_log_dir`` first. Safe to call
-        more than once."""
-        proc, self.proc = self.proc, None
-        fin = getattr(self, '_finalizer', None)
-        if fin is not None:
-            fin.detach()
-        if proc is not None:
-            for sig, wait_s in ((signal.SIGINT, 2.0), (signal.SIGTERM, 2.0),
-                                (signal.SIGKILL, 2.0)):
-                if proc.poll() is not None:
-                    break
-                with contextlib.suppress(ProcessLookupError, PermissionError):
-                    os.killpg(proc.pid, sig)
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    proc.wait(timeout=wait_s)
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.killpg(proc.pid, signal.SIGKILL)   # stray clients of the group
-        if self._log is not None:
-            self._log.close()
-            self._log = None
-        if self.workdir is not None:
-            if self.keep_log_dir is not None:
-                dest = pathlib.Path(self.keep_log_dir)
-                dest.mkdir(parents=True, exist_ok=True)
-                for ulg in (self.workdir / 'rootfs' / 'log').rglob('*.ulg'):
-                    shutil.copy2(ulg, dest / ulg.name)
-                with contextlib.suppress(OSError):
-                    shutil.copy2(self.log_path, dest / 'px4.log')
-            shutil.rmtree(self.workdir, ignore_errors=True)
-            self.workdir = None
+    def _keep_logs(self, dest: pathlib.Path) -> None:
+        assert self.workdir is not None
+        for ulg in (self.workdir / 'rootfs' / 'log').rglob('*.ulg'):
+            shutil.copy2(ulg, dest / ulg.name)
+        super()._keep_logs(dest)
