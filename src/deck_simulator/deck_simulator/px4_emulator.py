@@ -50,6 +50,17 @@ MODE_AUTO_LAND = (4, 6)
 PX4_MODES = {ap_modes.POSITION: MODE_POSCTL, ap_modes.ALTITUDE: MODE_ALTCTL,
              ap_modes.OFFBOARD: MODE_OFFBOARD, ap_modes.HOLD: MODE_AUTO_LOITER,
              ap_modes.RETURN: MODE_AUTO_RTL, ap_modes.LAND: MODE_AUTO_LAND}
+
+
+def px4_name(generic_mode: str) -> str:
+    """The PX4 v1.16 name of a generic autopilot mode (``'return'`` → ``'AUTO.RTL'``), as the
+    bridge reports it from the emulator's heartbeat; the generic name when PX4 has none."""
+    mode = PX4_MODES.get(generic_mode)
+    if mode is None:
+        return generic_mode
+    return px4_mode_name(px4_custom_mode(*mode))
+
+
 #: the modes a companion may ask for with DO_SET_MODE
 _ACCEPTED_MODES = {MODE_POSCTL: ap_modes.POSITION, MODE_ALTCTL: ap_modes.ALTITUDE,
                    MODE_OFFBOARD: ap_modes.OFFBOARD, MODE_AUTO_LOITER: ap_modes.HOLD,

@@ -706,6 +706,13 @@ def _finish_report(report: dict[str, Any], args, hardware: bool, orch: Orchestra
     left = [b for a, b in itertools.pairwise(seq) if a == 'OFFBOARD' and b != 'OFFBOARD']
     if left:
         report['failsafe'] = left[0]
+    elif report.get('failsafe_mode') and 'autopilot' not in report:
+        # no mode seen leaving OFFBOARD: the bridge that reports them can be gone with the
+        # node killed (composed mode). The emulated autopilot's own record says which
+        # failsafe it flew (in PX4's name, as the bridge would have reported it)
+        from deck_simulator.px4_emulator import px4_name
+        report['failsafe'] = px4_name(report['failsafe_mode'])
+        report['failsafe_source'] = 'simulator'
     report['autopilot_modes'] = modes
     report['injected_faults'] = injected
     if orch.device_problems():
