@@ -475,7 +475,7 @@ class World:
         t = t0 + h
         self.t_s = t
         self._set_deck(t)
-        if t >= self._next_sensor_s:
+        if t + 1e-9 >= self._next_sensor_s:
             self._sample_sensors(t)
         # resting: enough gear points down on one surface (the land detector's "landed")
         c = v.contact
@@ -535,8 +535,8 @@ class World:
     def _init_sensors(self, camera_rng: random.Random, camera_normal: Normal) -> None:
         """The seed's honest sensors (:class:`SensorSuite`), each on its own clock.
 
-        The clocks start before t = 0 by two periods plus the latency of the slowest sensor,
-        sampling the start state, so at t = 0 every sensor has delivered (the autopilot was
+        The clocks start before t = 0 (two periods plus the latency of the slowest sensor,
+        rounded up to whole seconds), sampling the start state, so at t = 0 every sensor has delivered (the autopilot was
         streaming before the landing began)."""
         sp = self.scenario.sensors
         if not self.scenario.randomize.gps_bias:
@@ -550,8 +550,9 @@ class World:
                 raise ValueError(
                     f'a sensor rate_hz of {tp.rate_hz:g} exceeds the physics rate '
                     f'{1.0 / self.physics_dt_s:g} Hz: it cannot be realised')
-        lead = max(2.0 / tp.rate_hz + tp.latency_s + 5.0 * tp.latency_jitter_s
-                   for tp in timings)
+        # whole seconds: without a random phase a clock then ticks on multiples of its period
+        lead = float(math.ceil(max(2.0 / tp.rate_hz + tp.latency_s + 5.0 * tp.latency_jitter_s
+                                   for tp in timings)))
         suite = SensorSuite(sp, self.seed, self.params.gravity_mps2, start_s=-lead)
         self.sensor_suite = suite
         self.sensor_params = sp
@@ -580,9 +581,19 @@ class World:
         for box in self.inbox.values():
             box.clear()
 
-    def _sample_sensors(self, t: float) -> None:
-        """Every sample due by ``t`` (taken from the state now: at most one physics tick
-        old), then every sample delivered by ``t`` (faults act on delivery)."""
+    def idle_to(self, t_s: float) -> None:
+        """Move the clock to ``t_s`` without physics (the vehicle and its motion frozen, the
+        deck moving), sampling and delivering the sensors on the way: for tests of the
+        sensor and fault streams over long spans."""
+        self.t_s = t_s
+        self._set_deck(t_s)
+        self._sample_sensors(t_s)
+
+    def _sample_sensors(self, t_now: float) -> None:
+        """Every sample due by ``t_now`` (taken from the state now: at most one physics tick
+        old), then every sample delivered by then (faults act on delivery). A clock instant
+        within 1 ns of now counts as now (the sub-step times are sums of floats)."""
+        t = t_now + 1e-9
         s = self.sensor_suite
         v = self.vehicle
         tm_imu, tm_att, tm_lp, tm_li, tm_cam = (s.imu_timing, s.attitude_timing,
