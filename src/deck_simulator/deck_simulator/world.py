@@ -536,8 +536,8 @@ class World:
         """The seed's honest sensors (:class:`SensorSuite`), each on its own clock.
 
         The clocks start before t = 0 (two periods plus the latency of the slowest sensor,
-        rounded up to whole seconds), sampling the start state, so at t = 0 every sensor has delivered (the autopilot was
-        streaming before the landing began)."""
+        rounded up to whole seconds), sampling the start state, so at t = 0 every sensor has
+        delivered (the autopilot was streaming before the landing began)."""
         sp = self.scenario.sensors
         if not self.scenario.randomize.gps_bias:
             lp = sp.local_position
