@@ -141,9 +141,12 @@ def test_telemetry_streams_like_px4():
     assert (lp.x, lp.y, lp.z) == pytest.approx((pos[1], pos[0], -pos[2]), abs=0.05)
     ds = by['DISTANCE_SENSOR'][-1]
     assert ds.orientation == 25 and abs(ds.current_distance - 100 * tr.position_m[2]) <= 10
-    imu = by['HIGHRES_IMU'][-1]
-    assert imu.zacc == pytest.approx(-G, abs=0.5)                  # FRD specific force in hover
-    assert abs(imu.xacc) < 0.5 and abs(imu.yacc) < 0.5
+    # FRD specific force in hover: the IMU model's (vibration σ 0.35 m/s² per sample), averaged
+    imus = by['HIGHRES_IMU']
+    n = len(imus)
+    assert n > 50
+    assert sum(m.zacc for m in imus) / n == pytest.approx(-G, abs=0.15)
+    assert abs(sum(m.xacc for m in imus) / n) < 0.15 and abs(sum(m.yacc for m in imus) / n) < 0.15
     ess = by['EXTENDED_SYS_STATE'][-1]
     assert ess.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
 
