@@ -4,6 +4,7 @@ import dataclasses
 import math
 
 from deck_simulator.scenario import HeaveSpec, load_scenario
+from deck_simulator.sensor_suite import ideal_sensors
 from deck_simulator.sensors import project_point
 from deck_simulator.world import World
 from deckland_common.frames import rot_body_to_world
@@ -19,8 +20,10 @@ def calm(faults=(), heave=None, glint_rate_hz=0.0):
     ap = dataclasses.replace(sc.apron, heave=heave or HeaveSpec(model='none'))
     cam = dataclasses.replace(sc.sensors.camera, dropout_prob=0.0,
                               false_blob_rate_hz=glint_rate_hz)
+    # ideal sensors (truth at their rates, no delay): what is left is the fault
     return dataclasses.replace(sc, randomize=rz, apron=ap, faults=faults,
-                               sensors=dataclasses.replace(sc.sensors, camera=cam))
+                               sensors=ideal_sensors(dataclasses.replace(sc.sensors,
+                                                                         camera=cam)))
 
 
 class Hover:
@@ -34,21 +37,29 @@ class Hover:
         self.z_ref = 2.0
 
     def run(self, seconds, camera=True, lidar=True, gps=False):
+        """(frames, ranges, fixes) as delivered, each (stamp, value), over ``seconds``."""
         w, p = self.w, self.w.params
+        w.queued = frozenset(('camera', 'lidar', 'local_position'))
         frames, ranges, fixes = [], [], []
         for k in range(round(seconds / DT)):
             if k % 4 == 0:
                 v = w.vehicle
                 w.set_command(0.0, 0.0, 0.0, p.mass_kg * (p.gravity_mps2 + 4.0 * (
                     self.z_ref - v.z) - 3.0 * v.vz) / w.truth().gamma)
-                if lidar:
-                    ranges.append((w.t_s, w.read_lidar()))
-                if gps:
-                    fixes.append((w.t_s, w.read_local_position()[0]))
-            if k % 8 == 0 and camera:
-                frames.append(w.read_camera())
             w.step(DT)
-        return frames, ranges, fixes
+            ranges.extend(w.delivered('lidar'))
+            fixes.extend((t, pv[0]) for t, pv in w.delivered('local_position'))
+            frames.extend(w.delivered('camera'))
+        return frames if camera else [], ranges if lidar else [], fixes if gps else []
+
+
+def idle_reads(w, n, dt_s, read):
+    """``read()`` after each of n clock moves of ``dt_s`` without physics."""
+    out = []
+    for _ in range(n):
+        w.idle_to(w.t_s + dt_s)
+        out.append(read())
+    return out
 
 
 def beacon_blocks(blocks):
@@ -87,10 +98,8 @@ def test_dropout_bursts_cover_the_expected_fraction_in_runs_of_the_burst_length(
     w = World(calm(faults), 3)
     cx, cy, _ = w.truth().beacon_position_m
     w.vehicle.x, w.vehicle.y = cx, cy
-    empty = []
-    for _ in range(15000):          # 300 s of frames at 50 Hz; the camera is read without physics
-        w.t_s += 0.02
-        empty.append(w.read_camera()[1] == [])
+    # 300 s of frames at 50 Hz; the camera is read without physics
+    empty = [f[1] == [] for f in idle_reads(w, 15000, 0.02, w.read_camera)]
     frac = sum(empty) / len(empty)
     # Poisson bursts of fixed length: covered fraction 1 − exp(−λ L)
     assert frac == pytest.approx(1.0 - math.exp(-rate * length), abs=0.035)
@@ -137,10 +146,7 @@ def test_flickering_glints_have_the_given_rate_and_stay_near_the_beacon():
     w = World(calm(faults), 6)
     cx, cy, top = w.truth().beacon_position_m
     w.vehicle.x, w.vehicle.y, w.vehicle.z = cx, cy, 2.0
-    counts = []
-    for _ in range(4000):
-        w.t_s += 0.02
-        counts.append(len(w.read_camera()[1]) - 1)
+    counts = [len(f[1]) - 1 for f in idle_reads(w, 4000, 0.02, w.read_camera)]
     assert sum(counts) / len(counts) == pytest.approx(0.5, abs=0.04)
     # Poisson: P(0) = exp(−0.5)
     assert counts.count(0) / len(counts) == pytest.approx(math.exp(-0.5), abs=0.03)
@@ -151,9 +157,8 @@ def test_flickering_glints_have_the_given_rate_and_stay_near_the_beacon():
     depth = 2.0 - top
     r_px = cam.fx_px * 0.3 / depth
     n = 0
-    for _ in range(500):
-        w.t_s += 0.02
-        for b in w.read_camera()[1]:
+    for frame in idle_reads(w, 500, 0.02, w.read_camera):
+        for b in frame[1]:
             n += 1
             assert math.hypot(b[1] - 160, (b[2] - 100) * cam.fx_px / cam.fy_px) <= r_px + 3
     assert n > 900
@@ -167,10 +172,7 @@ def test_lidar_dropout_window_and_probability():
                if not 1.0 <= t < 2.0)
     faults = [{'type': 'lidar_dropout', 'probability': 0.3}]
     w = World(calm(faults), 2)
-    reads = []
-    for _ in range(5000):
-        w.t_s += 0.01
-        reads.append(w.read_lidar())
+    reads = idle_reads(w, 5000, 0.01, w.read_lidar)
     assert sum(r is None for r in reads) / len(reads) == pytest.approx(0.3, abs=0.025)
 
 
@@ -179,11 +181,8 @@ def test_lidar_outliers_at_the_given_rate_and_magnitude(direction):
     faults = [{'type': 'lidar_outliers', 'probability': 0.1, 'magnitude_m': 0.8,
                'direction': direction}]
     a, b = World(calm(), 9), World(calm(faults), 9)
-    diffs = []
-    for _ in range(4000):
-        a.t_s += 0.01
-        b.t_s += 0.01
-        diffs.append(b.read_lidar() - a.read_lidar())
+    diffs = [rb - ra for ra, rb in zip(idle_reads(a, 4000, 0.01, a.read_lidar),
+                                       idle_reads(b, 4000, 0.01, b.read_lidar), strict=True)]
     spikes = [d for d in diffs if d != 0.0]
     assert len(spikes) / len(diffs) == pytest.approx(0.1, abs=0.015)
     assert all(abs(abs(d) - 0.8) < 1e-9 for d in spikes)

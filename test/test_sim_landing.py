@@ -8,6 +8,7 @@ import math
 from deck_simulator.autopilot import LAND, EmulatedAutopilot
 from deck_simulator.outcome import landing_outcome, outcome_dict
 from deck_simulator.scenario import load_scenario
+from deck_simulator.sensor_suite import ideal_sensors
 from deck_simulator.ship_params import ShipParams
 from deck_simulator.world import World
 from deckland_common.frames import mat_t_vec
@@ -16,13 +17,11 @@ from test_simnode_loop import Rig, calm
 
 DT = 1.0 / 400.0
 
-
 def ship_scenario(name='ship_ss3', **ship):
     sc = load_scenario(name)
     rz = dataclasses.replace(sc.randomize, start_offset_m=0.0, start_yaw_rad=0.0)
     ap = dataclasses.replace(sc.apron, ship=dataclasses.replace(sc.apron.ship, **ship))
     return dataclasses.replace(sc, randomize=rz, apron=ap)
-
 
 def place_over_pad(w, gap_m, offset_m=(0.0, 0.0)):
     """Motors off, level with the deck, ``gap_m`` above it at ``offset_m`` (deck frame) from
@@ -36,13 +35,11 @@ def place_over_pad(w, gap_m, offset_m=(0.0, 0.0)):
     assert w.disarm()
     return ps
 
-
 def run(w, seconds, until_done=True):
     for _ in range(round(seconds / DT)):
         w.step(DT)
         if until_done and w.landing_done:
             break
-
 
 def test_a_drop_on_the_moving_ship_deck_lands_on_the_pad_and_settles():
     w = World(load_scenario('ship_ss3'), 1)
@@ -59,7 +56,6 @@ def test_a_drop_on_the_moving_ship_deck_lands_on_the_pad_and_settles():
     tr = w.truth()
     assert tr.resting_on == 'pad' and tr.deck_rpy_rad != (0.0, 0.0, 0.0)
     assert math.dist(tr.velocity_mps, w.pad_state().point_velocity(tr.position_m)) < 0.05
-
 
 def test_a_vehicle_resting_on_the_rolling_deck_stays_put():
     """Beam seas, sea state 4: the hull rolls ~9° (significant amplitude); friction 0.6
@@ -80,7 +76,6 @@ def test_a_vehicle_resting_on_the_rolling_deck_stays_put():
     assert moved < 0.005
     assert rec.outcome == 'deck' and rec.bounces == 0 and not rec.slid_off_pad
 
-
 def test_first_contact_off_the_pad_fails_and_off_the_deck_is_in_the_sea():
     w = World(load_scenario('ship_ss3'), 3)
     place_over_pad(w, 0.02, offset_m=(1.5, 0.0))       # on the deck, 1.5 m ahead of the pad
@@ -96,11 +91,9 @@ def test_first_contact_off_the_pad_fails_and_off_the_deck_is_in_the_sea():
     assert out.contact_kind == 'water' and out.crash and 'landed in the water' in out.reason
     assert ps.position_m[2] > 2.0
 
-
 def test_beacon_lidar_and_deck_velocity_follow_the_tilted_moving_deck():
     sc = load_scenario('ship_turning')
-    sc = dataclasses.replace(sc, sensors=dataclasses.replace(
-        sc.sensors, lidar=dataclasses.replace(sc.sensors.lidar, noise_m=0.0)))
+    sc = dataclasses.replace(sc, sensors=ideal_sensors(sc.sensors))
     w = World(sc, 4)
     v = w.vehicle
     for _ in range(round(7.3 / DT)):
@@ -116,13 +109,14 @@ def test_beacon_lidar_and_deck_velocity_follow_the_tilted_moving_deck():
     assert tr.deck_velocity_mps == ps.velocity_mps[:2] and tr.deck_vz_mps == ps.velocity_mps[2]
     assert tr.deck_rpy_rad == ps.rpy_rad and max(map(abs, ps.rpy_rad[:2])) > 1e-3
     # straight down to the tilted plane: z minus the plane's height under (x, y)
-    assert w.read_lidar() == pytest.approx(v.z - ps.height_under(v.x, v.y), abs=1e-9)
+    assert w.true_lidar_range() == pytest.approx(v.z - ps.height_under(v.x, v.y), abs=1e-9)
+    # the ideal lidar's last reading: the same plane, sampled up to one period (10 ms) ago
+    assert w.read_lidar() == pytest.approx(v.z - ps.height_under(v.x, v.y), abs=0.02)
     assert tr.surface_height_m == pytest.approx(ps.height_under(v.x, v.y), abs=1e-9)
     assert tr.over_pad
     # the camera frame's beacon is the pad at the exposure time
     stamp, _ = w.read_camera()
     assert w._beacon_at(stamp) == w.ship.pad_state(stamp).position_m
-
 
 def test_the_graph_simulator_node_scores_the_same_record_as_the_in_process_world():
     """AUTO.LAND over the pad through the simulator node's loop (emulated PX4 on the wire)
@@ -154,7 +148,6 @@ def test_the_graph_simulator_node_scores_the_same_record_as_the_in_process_world
         w.step(DT)
     alone = outcome_dict(landing_outcome(w, 5, None, 0, '', ''))
     assert json.dumps(alone, sort_keys=True) == json.dumps(graph, sort_keys=True)
-
 
 def test_ship_scenario_keys_are_validated_with_their_path():
     from deck_simulator.scenario import scenario_from_dict

@@ -4,6 +4,7 @@ import dataclasses
 import math
 
 from deck_simulator.scenario import HeaveSpec, load_scenario
+from deck_simulator.sensor_suite import ideal_sensors
 from deck_simulator.world import World
 import pytest
 
@@ -171,29 +172,36 @@ def test_a_deck_drifting_at_half_a_metre_per_second_carries_the_landed_vehicle()
     assert out.landing == 'deck' and out.settled and out.lateral_speed_mps < 0.01
 
 
+def held_at(world, x, y, z, seconds=0.02):
+    """Hold the vehicle at (x, y, z) for ``seconds`` of physics (the sensors sample it)."""
+    for _ in range(round(seconds / DT)):
+        place(world, x, y, z)
+        world.step(DT)
+
+
 def test_lidar_drops_by_deck_height_when_pad_comes_under():
     sc = calm()
-    sc = dataclasses.replace(sc, sensors=dataclasses.replace(
-        sc.sensors, lidar=dataclasses.replace(sc.sensors.lidar, noise_m=0.0)))
+    sc = dataclasses.replace(sc, sensors=ideal_sensors(sc.sensors))
     w = World(sc, seed=6)
     cx, cy, top = w.truth().beacon_position_m
-    place(w, cx + 1.5, cy, 2.0)
-    assert w.read_lidar() == pytest.approx(2.0)
-    place(w, cx + 0.3, cy, 2.0)
-    assert w.read_lidar() == pytest.approx(2.0 - top)
+    held_at(w, cx + 1.5, cy, 2.0)
+    assert w.read_lidar() == pytest.approx(2.0, abs=1e-6)
+    held_at(w, cx + 0.3, cy, 2.0)
+    assert w.read_lidar() == pytest.approx(2.0 - top, abs=1e-6)
     assert top == pytest.approx(0.6)
 
 
 def test_camera_sees_beacon_below_and_stamp_is_exposure_time():
     sc = calm()
     cam = dataclasses.replace(sc.sensors.camera, pixel_noise_px=0.0, dropout_prob=0.0)
-    w = World(dataclasses.replace(sc, sensors=dataclasses.replace(sc.sensors, camera=cam)), 7)
+    sensors = ideal_sensors(dataclasses.replace(sc.sensors, camera=cam))
+    w = World(dataclasses.replace(sc, sensors=sensors), 7)
     cx, cy, _ = w.truth().beacon_position_m
-    place(w, cx, cy, 2.0)
-    for _ in range(40):
-        w.step(DT)
+    held_at(w, cx, cy, 2.0, 0.1)
     stamp, blocks = w.read_camera()
-    assert stamp == pytest.approx(w.t_s - cam.latency_s)
+    period = 1.0 / sensors.true_camera.timing.rate_hz
+    # ideal timing: the frame of the last period boundary, stamped at its exposure
+    assert stamp == pytest.approx(period * math.floor(w.t_s / period + 1e-6), abs=1e-9)
     assert len(blocks) == 1 and blocks[0][1:3] == (160, 100)
 
 

@@ -204,7 +204,7 @@ class ArduPilotJson:
         self._imu: ImuModel | None = None
         self._range_due = 0.0
         self._range_m = -1.0
-        self._range_period = 1.0 / world.scenario.sensors.lidar.rate_hz
+        self._range_period = 1.0 / world.scenario.sensors.lidar.timing.rate_hz
         self._fmax = world.params.motor_max_n
         # the world's Autopilot protocol (tick mode: the simulator loop steps the world)
         self.active = True

@@ -62,8 +62,9 @@ class SimulationLoop:
     faults ``relay = (companion_side, firmware_side)`` transports carry that link through
     the scenario's faults. ``advance(dt_s)`` runs as many ``1 / physics_rate_hz`` sub-steps as
     fit (the remainder is carried over) and returns ``(truth_samples, outcome_or_None)``; per
-    sub-step, at the scenario's sensor rates: telemetry into the emulator (``imu.rate_hz``;
-    lidar at ``lidar.rate_hz``), a Pixy datagram (``camera.rate_hz``), the emulator's input
+    sub-step: telemetry into the emulator at the IMU's rate (``sensors.imu.timing.rate_hz``:
+    the latest sample every sensor has delivered, on its own clock and latency), each Pixy
+    frame as a datagram when the world delivers it, the emulator's input
     (``AUTOPILOT_INPUT_HZ``) or the relay, truth samples (``truth_rate_hz``), then
     ``world.step`` (the autopilot ticks in there). ``on_planner_mode`` may be called from
     another thread.
@@ -109,13 +110,11 @@ class SimulationLoop:
         self.pixy_send = pixy_send
         self.h_s = 1.0 / physics_rate_hz
         sp = scenario.sensors
-        self._periods = {'telemetry': 1.0 / sp.imu.rate_hz, 'lidar': 1.0 / sp.lidar.rate_hz,
-                         'camera': 1.0 / sp.camera.rate_hz,
+        world.queued = frozenset(('camera',))
+        self._periods = {'telemetry': 1.0 / sp.imu.timing.rate_hz,
                          'control': 1.0 / AUTOPILOT_INPUT_HZ, 'truth': 1.0 / truth_rate_hz}
         self._due = dict.fromkeys(self._periods, 0.0)
         self._pending_s = 0.0
-        self._range_m: float | None = None
-        self._g = scenario.vehicle.gravity_mps2
         self._lock = threading.Lock()
         self.mode = ''
         self.trigger_t_s: float | None = None
@@ -129,8 +128,6 @@ class SimulationLoop:
         self._faults_dormant = emulator is None and fs is not None
         if emulator is not None:
             # the vehicle hovers armed in POSCTL at the start (PX4 after a manual take-off)
-            self._take('lidar', 0.0)
-            self._range_m = world.read_lidar()
             self._take('telemetry', 0.0)
             self._telemetry(0.0)
             self.autopilot.start_in_air(0.0)
@@ -194,13 +191,11 @@ class SimulationLoop:
     def _substep(self, samples: list[Truth]) -> dict | None:
         world = self.world
         t = world.t_s
-        if self.emulator is not None:
-            if self._take('lidar', t):
-                self._range_m = world.read_lidar()
-            if self._take('telemetry', t):
-                self._telemetry(t)
-        if self._take('camera', t):
-            self._camera()
+        if self.emulator is not None and self._take('telemetry', t):
+            self._telemetry(t)
+        if world.inbox['camera']:
+            for _stamp, blocks in world.delivered('camera'):
+                self._camera(blocks)
         if self.emulator is not None:
             if self._take('control', t):
                 self._control(t)
@@ -224,19 +219,15 @@ class SimulationLoop:
         world = self.world
         emulator = self.emulator
         assert emulator is not None   # telemetry is scheduled only with the emulator
+        # the latest sample each sensor has delivered (the model latency stands for the
+        # serial link loopback UDP does not have); IMU: specific force and rate, body FLU
         pos, vel = world.read_local_position()
         roll, pitch, yaw = world.read_attitude()
-        ax, ay, az = world.read_accel_world()
-        tr = world.truth()
-        rates = body_rates(tr.roll_rad, tr.pitch_rad, *tr.euler_rates_radps)
-        # specific force in body FLU (REP-145): Rᵀ (a + g e3)
-        accel_body = mat_t_vec(rot_body_to_world(tr.roll_rad, tr.pitch_rad, tr.yaw_rad),
-                               (ax, ay, az + self._g))
+        accel_body, rates = world.read_imu()
         emulator.publish_state(t, pos, vel, roll, pitch, yaw, rates, accel_body,
-                                    self._range_m, world.resting_on is not None)
+                               world.read_lidar(), world.resting_on is not None)
 
-    def _camera(self) -> None:
-        _stamp, blocks = self.world.read_camera()
+    def _camera(self, blocks: list) -> None:
         keep = [b for b in blocks if block_in_range(*b)]
         self.counters['pixy_blocks_dropped'] += len(blocks) - len(keep)
         try:

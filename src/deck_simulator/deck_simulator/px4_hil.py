@@ -221,7 +221,7 @@ class Px4Hil:
         self._due = {'mag': 0.0, 'baro': 0.0, 'gps': 0.0, 'state': 0.0, 'range': 0.0}
         self._periods = {'mag': 1.0 / p.mag_rate_hz, 'baro': 1.0 / p.baro_rate_hz,
                          'gps': 1.0 / p.gps_rate_hz, 'state': 1.0 / p.state_rate_hz,
-                         'range': 1.0 / world.scenario.sensors.lidar.rate_hz}
+                         'range': 1.0 / world.scenario.sensors.lidar.timing.rate_hz}
         self._rng = {k: random.Random(f'{world.seed}:px4_hil:{p.seed}:{k}')
                      for k in ('mag', 'baro')}
         self.imu = ImuModel(p.imu, model_streams(world.seed, f'px4_hil:{p.seed}:imu'),

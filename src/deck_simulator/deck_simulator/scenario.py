@@ -3,14 +3,15 @@
 ``load_scenario(name_or_path)`` takes a built-in name (``builtin_names()``: the YAML files in
 ``deck_simulator/data/``) or a path. Unknown keys are rejected, types and ranges checked, and
 every error names the source and the key path, e.g. ``scenario 'x.yaml': apron.heave.stroke_m
-must be > 0, got -1``. ``vehicle`` and ``sensors`` override fields of
-:class:`~deck_simulator.vehicle.VehicleParams` / :class:`~deck_simulator.sensors.SensorParams`;
+must be > 0, got -1``. ``vehicle`` and ``sensors`` override fields of ``VehicleParams`` /
+``SensorSuiteParams`` (a partial section keeps the defaults of the keys it does not give;
+lists stand for tuples);
 ``faults`` is validated by :func:`deck_simulator.faults.parse_faults`.
 """
 
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 import typing
 from typing import Any
@@ -19,7 +20,7 @@ from deckland_common.validate import is_finite_number, require
 import yaml
 
 from deck_simulator.faults import FaultSpec, parse_faults
-from deck_simulator.sensors import SensorParams
+from deck_simulator.sensor_suite import SensorSuiteParams
 from deck_simulator.ship_params import ShipParams
 from deck_simulator.touchdown import OutcomeRules
 from deck_simulator.vehicle import VehicleParams
@@ -137,7 +138,7 @@ class Scenario:
     apron: ApronSpec = field(default_factory=ApronSpec)
     wind: WindSpec = field(default_factory=WindSpec)
     vehicle: VehicleParams = field(default_factory=VehicleParams)
-    sensors: SensorParams = field(default_factory=SensorParams)
+    sensors: SensorSuiteParams = field(default_factory=SensorSuiteParams)
     randomize: RandomizeSpec = field(default_factory=RandomizeSpec)
     faults: tuple[FaultSpec, ...] = ()   # entries may be given as mappings (parsed here)
     #: the landing's outcome rules (touchdown.OutcomeRules; docs/world/contact.md)
@@ -160,12 +161,26 @@ class Scenario:
 
 # --- generic YAML → dataclass builder ---------------------------------------------------------
 
-def _convert(tp: Any, value: Any, path: str) -> Any:
+#: keys of the ideal sensors the honest models replaced (docs/world/sensors.md): refused
+#: with the key that now does the job
+RETIRED_KEYS = {
+    'sensors.camera.rate_hz': 'sensors.true_camera.timing.rate_hz',
+    'sensors.camera.latency_s': 'sensors.true_camera.timing.latency_s',
+    'sensors.lidar.rate_hz': 'sensors.lidar.timing.rate_hz',
+    'sensors.lidar.noise_m': 'sensors.lidar.noise_std_m (and the other error keys)',
+    'sensors.imu.rate_hz': 'sensors.imu.timing.rate_hz',
+    'sensors.imu.attitude_noise_rad': 'sensors.attitude.tilt_noise_rad',
+    'sensors.imu.yaw_noise_rad': 'sensors.attitude.yaw_noise_rad',
+    'sensors.imu.accel_noise_mps2': 'sensors.imu.accel_noise_density',
+    'sensors.gps': 'sensors.local_position (horizontal / vertical / timing)',
+}
+
+def _convert(tp: Any, value: Any, path: str, base: Any = None) -> Any:
     origin = typing.get_origin(tp)
     if is_dataclass(tp):
         if not isinstance(value, dict):
             raise ValueError(f'{path} must be a mapping, got {value!r}')
-        return _build(tp, value, path)
+        return _build(tp, value, path, base)
     if tp is float:
         if not is_finite_number(value):
             raise ValueError(f'{path} must be a finite number, got {value!r}')
@@ -201,7 +216,19 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
     return value
 
 
-def _build(cls: type, data: dict, path: str) -> Any:
+def _field_default(cls: type, name: str) -> Any:
+    for f in fields(cls):
+        if f.name == name:
+            if f.default is not MISSING:
+                return f.default
+            if f.default_factory is not MISSING:
+                return f.default_factory()
+    return None
+
+
+def _build(cls: type, data: dict, path: str, base: Any = None) -> Any:
+    """``cls`` from ``data``; the keys not given keep ``base``'s values (the field's default
+    in the enclosing dataclass), so a partial section changes only what it names."""
     hints = typing.get_type_hints(cls)
     names = [f.name for f in fields(cls)]
     allowed = set(names)
@@ -213,10 +240,18 @@ def _build(cls: type, data: dict, path: str) -> Any:
     kwargs = {}
     for key, value in data.items():
         where = f'{path}.{key}' if path else str(key)
+        if where in RETIRED_KEYS:
+            raise ValueError(f'key {where!r} is retired: use {RETIRED_KEYS[where]}')
         if key not in allowed:
             raise ValueError(f'unknown key {where!r} (allowed: {sorted(allowed)})')
-        kwargs[key] = _convert(hints[key], value, where)
+        tp = hints[key]
+        sub = None
+        if is_dataclass(tp):
+            sub = getattr(base, key) if base is not None else _field_default(cls, key)
+        kwargs[key] = _convert(tp, value, where, sub)
     try:
+        if base is not None:
+            return replace(base, **kwargs)
         return cls(**kwargs)
     except ValueError as exc:
         raise ValueError(f'{path + "." if path else ""}{exc}') from None

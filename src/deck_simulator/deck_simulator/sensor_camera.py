@@ -42,7 +42,6 @@ class CameraModelParams:
     mount_std_rad: tuple[float, float, float] = (0.009, 0.009, 0.017)   # roll, pitch, yaw
     exposure_jitter_s: float = 0.001    # per frame, σ of the exposure midpoint
     rolling_readout_s: float = 0.016    # top row → bottom row exposure delay
-    undistort_iterations: int = 20
     timing: TimingParams = field(default_factory=_timing)
 
     def __post_init__(self) -> None:
@@ -56,7 +55,6 @@ class CameraModelParams:
         chk.finite_tuple('mount_std_rad', self.mount_std_rad, 3)
         chk.require(all(0.0 <= v < 0.5 for v in self.mount_std_rad), 'mount_std_rad',
                     'must be in [0, 0.5) rad', self.mount_std_rad)
-        chk.integer_at_least('undistort_iterations', self.undistort_iterations, 1)
         chk.require(self.rolling_readout_s < 1.0 / self.timing.rate_hz, 'rolling_readout_s',
                     'must be shorter than the frame period', self.rolling_readout_s)
 
@@ -105,8 +103,7 @@ class TrueCamera:
         # true mount = nominal mount followed by the misalignment, both camera-to-body
         m = mat_mul(rot_body_to_world(*nominal.mount_rpy_rad), rot_body_to_world(dr, dp, dy))
         return cls(nominal.fx_px * (1.0 + ef), nominal.fy_px * (1.0 + ef), cx, cy, k1, k2,
-                   p1, p2, euler_from_matrix(m), nominal.width_px, nominal.height_px,
-                   p.undistort_iterations)
+                   p1, p2, euler_from_matrix(m), nominal.width_px, nominal.height_px)
 
     def distort(self, x: float, y: float) -> tuple[float, float]:
         """Normalised undistorted (x, y) → distorted (Brown–Conrady)."""

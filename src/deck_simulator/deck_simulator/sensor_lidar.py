@@ -95,7 +95,7 @@ class LidarLiteParams:
     far_range_m: float = 5.0
     noise_std_far_m: float = 0.04          # per sample beyond far_range_m (±10 cm typical)
     near_range_m: float = 1.0              # non-linear below (data sheet footnote)
-    near_bias_m: float = 0.10              # bias at zero range, nominal (assumption)
+    near_bias_m: float = 0.0               # bias at zero range: none stated (data sheet)
     near_bias_spread: float = 0.5          # per-unit relative σ of near_bias_m
     near_noise_gain: float = 1.0           # σ × (1 + gain (1 − r / near_range_m)) below it
     dropout_prob: float = 0.0              # per sample, no reading

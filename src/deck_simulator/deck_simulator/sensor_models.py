@@ -206,6 +206,11 @@ class SensorTiming(Generic[T]):
             out.append((d[1], d[2]))
         return out
 
+    def next_delivery_s(self) -> float:
+        """When the oldest queued sample is delivered (inf: none queued)."""
+        q = self._queue
+        return q[0][0] if q else math.inf
+
     def pending(self) -> int:
         """Samples taken but not yet delivered."""
         return len(self._queue)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import hashlib
 import math
 import random
+from typing import Protocol
 
 from deckland_common.frames import Mat3, rot_body_to_world
 from deckland_common.validate import is_finite_number, require
@@ -24,6 +25,19 @@ Block = tuple[int, int, int, int, int]   # (signature, x, y, w, h), Pixy units
 Normal = Callable[[], float]             # a standard-normal source: normal() ~ N(0, 1)
 
 NORMAL_BLOCK = 256   # samples drawn per numpy call by normal_stream
+
+
+class TrueCameraLike(Protocol):
+    """What :meth:`Camera.frame` needs of :class:`deck_simulator.sensor_camera.TrueCamera`."""
+
+    fx: float
+    fy: float
+
+    def optical(self, r_body_to_world: Mat3, d0: float, d1: float,
+                d2: float) -> tuple[float, float, float]: ...
+
+    def project_optical(self, xo: float, yo: float,
+                        zo: float) -> tuple[float, float] | None: ...
 
 
 def normal_stream(key: str, block: int = NORMAL_BLOCK) -> Normal:
@@ -53,15 +67,16 @@ def _gauss_of(rng: random.Random) -> Normal:
 
 @dataclass(frozen=True, slots=True)
 class CameraParams:
-    """IR Pixy (CMUcam5) emulation: 320×200 px, 50 Hz, full FOV 60°×47° (Table 2)."""
+    """IR Pixy (CMUcam5) as the estimator is told it is (the nominal camera): 320×200 px,
+    full FOV 60°×47° (Table 2). Its frame clock and latency are
+    ``sensors.true_camera.timing``; the simulated unit differs from this per seed
+    (:mod:`deck_simulator.sensor_camera`)."""
 
     fov_x_deg: float = 60.0
     fov_y_deg: float = 47.0
     width_px: int = 320
     height_px: int = 200
     principal_point_px: tuple[float, float] = (160.0, 100.0)
-    rate_hz: float = 50.0
-    latency_s: float = 0.02            # exposure → delivery; the stamp is the exposure time
     pixel_noise_px: float = 0.5
     dropout_prob: float = 0.02         # per frame, the beacon is missed
     max_range_m: float = 12.0
@@ -79,10 +94,10 @@ class CameraParams:
         for name in ('width_px', 'height_px', 'signature'):
             v = getattr(self, name)
             require(isinstance(v, int) and v > 0, name, 'must be a positive integer', v)
-        for name in ('rate_hz', 'max_range_m', 'beacon_size_m', 'false_blob_lifetime_s'):
+        for name in ('max_range_m', 'beacon_size_m', 'false_blob_lifetime_s'):
             v = getattr(self, name)
             require(is_finite_number(v) and v > 0, name, 'must be > 0', v)
-        for name in ('latency_s', 'pixel_noise_px', 'false_blob_rate_hz'):
+        for name in ('pixel_noise_px', 'false_blob_rate_hz'):
             v = getattr(self, name)
             require(is_finite_number(v) and v >= 0, name, 'must be >= 0', v)
         require(is_finite_number(self.dropout_prob) and 0 <= self.dropout_prob <= 1,
@@ -256,11 +271,13 @@ def lidar_range_along(x: float, y: float, z: float, dx: float, dy: float, dz: fl
 class Camera:
     """Pixy frame generator: beacon blob with noise, quantisation, dropouts, and glints."""
 
-    __slots__ = ('_c', '_cx', '_cy', '_fx', '_fy', 'glints', 'last_t', 'normal', 'params', 'rng')
+    __slots__ = ('_c', '_cx', '_cy', '_fx', '_fy', 'glints', 'last_t', 'normal', 'params',
+                 'period_s', 'rng')
 
     def __init__(self, params: CameraParams, rng: random.Random,
-                 normal: Normal | None = None) -> None:
+                 normal: Normal | None = None, period_s: float = 0.02) -> None:
         self.params = params
+        self.period_s = period_s       # frame period (glints before the first frame)
         self.rng = rng                 # uniforms: dropouts, glints
         self.normal = normal if normal is not None else _gauss_of(rng)   # pixel noise
         self._fx, self._fy = params.fx_px, params.fy_px
@@ -271,29 +288,42 @@ class Camera:
 
     def frame(self, t_s: float, cam_position_m: tuple[float, float, float],
               r_body_to_world: Mat3, beacon_m: tuple[float, float, float],
-              show_beacon: bool = True) -> list[Block]:
+              show_beacon: bool = True, true_camera: TrueCameraLike | None = None) -> list[Block]:
         """One frame exposed at t_s. ``show_beacon=False`` (occlusion fault) draws the same
-        random numbers but leaves the beacon out, so the noise streams stay aligned."""
+        random numbers but leaves the beacon out, so the noise streams stay aligned.
+        ``true_camera`` (:class:`deck_simulator.sensor_camera.TrueCamera`): project through
+        it (distortion, the seed's intrinsics and mount) instead of the nominal pinhole."""
         p = self.params
         rng = self.rng
         blocks: list[Block] = []
         d0 = beacon_m[0] - cam_position_m[0]
         d1 = beacon_m[1] - cam_position_m[1]
         d2 = beacon_m[2] - cam_position_m[2]
-        xo, yo, zo = _to_optical(self._c, r_body_to_world, d0, d1, d2)
+        if true_camera is None:
+            xo, yo, zo = _to_optical(self._c, r_body_to_world, d0, d1, d2)
+        else:
+            xo, yo, zo = true_camera.optical(r_body_to_world, d0, d1, d2)
         dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         if zo > 1e-3 and dist <= p.max_range_m and rng.random() >= p.dropout_prob:
             normal = self.normal
-            u = self._cx + self._fx * xo / zo + p.pixel_noise_px * normal()
-            v = self._cy + self._fy * yo / zo + p.pixel_noise_px * normal()
-            ui, vi = round(u), round(v)
+            nu = p.pixel_noise_px * normal()
+            nv = p.pixel_noise_px * normal()
+            if true_camera is None:
+                u0, v0 = self._cx + self._fx * xo / zo, self._cy + self._fy * yo / zo
+                fx, fy = self._fx, self._fy
+            else:
+                uv = true_camera.project_optical(xo, yo, zo)
+                assert uv is not None   # zo > 1e-3
+                u0, v0 = uv
+                fx, fy = true_camera.fx, true_camera.fy
+            ui, vi = round(u0 + nu), round(v0 + nv)
             if show_beacon and 0 <= ui < p.width_px and 0 <= vi < p.height_px:
-                w = max(1, round(self._fx * p.beacon_size_m / zo))
-                h = max(1, round(self._fy * p.beacon_size_m / zo))
+                w = max(1, round(fx * p.beacon_size_m / zo))
+                h = max(1, round(fy * p.beacon_size_m / zo))
                 blocks.append((p.signature, ui, vi, w, h))
         # glints: Poisson arrivals over the time since the last frame, short-lived
         if p.false_blob_rate_hz > 0.0:
-            elapsed = 1.0 / p.rate_hz if self.last_t is None else max(0.0, t_s - self.last_t)
+            elapsed = self.period_s if self.last_t is None else max(0.0, t_s - self.last_t)
             lam = p.false_blob_rate_hz * elapsed
             n = 0
             if lam > 0.0:

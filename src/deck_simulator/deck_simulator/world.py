@@ -12,11 +12,12 @@ Decisions: the package README and docs/world/contact.md, docs/world/ship.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 import random
+from typing import Any
 
-from deckland_common.frames import rot_body_to_world
+from deckland_common.frames import Mat3, rot_body_to_world
 
 from deck_simulator.autopilot import ACCEPTED, Autopilot, EmulatedAutopilot, in_process_params
 from deck_simulator.contact import Surface, ground_surface
@@ -25,20 +26,17 @@ from deck_simulator.deck_motion import DeckMotion, HeaveDeckMotion, PadState
 from deck_simulator.faults import FaultSet
 from deck_simulator.link import CommandLink
 from deck_simulator.scenario import Scenario
-from deck_simulator.sensors import (
-    Block,
-    Camera,
-    Gps,
-    Imu,
-    Lidar,
-    Normal,
-    lidar_range_along,
-    normal_stream,
-)
+from deck_simulator.sensor_imu import accel_world_through, body_rates_from_euler
+from deck_simulator.sensor_lidar import Surface as LidarSurface
+from deck_simulator.sensor_lidar import ground_plane, horizontal_rectangle
+from deck_simulator.sensor_suite import SensorSuite
+from deck_simulator.sensors import Block, Camera, Normal, lidar_range_along, normal_stream
 from deck_simulator.ship import ShipMotion
 from deck_simulator.touchdown import LandingRecord, Pad, TouchdownMonitor
 from deck_simulator.vehicle import Vehicle
 
+#: the sensors of :meth:`World.delivered`
+SENSOR_STREAMS = ('imu', 'attitude', 'local_position', 'lidar', 'camera')
 GUST_UPDATE_S = 0.01 - 1e-9   # gusts (τ ~ s) are held over 10 ms
 #: the apron's box reaches this far below its top (through the ground: it stands on it)
 APRON_DEPTH_EXTRA_M = 10.0
@@ -209,11 +207,6 @@ class World:
         self._gust_std = w.gust_std_mps
         self._gust_vratio = w.vertical_gust_ratio
 
-        sp = sc.sensors
-        self.camera = Camera(sp.camera, stream('camera'), noise('camera'))
-        self.lidar = Lidar(sp.lidar, stream('lidar'), noise('lidar'))
-        self.gps = Gps(sp.gps, stream('gps'), initial_bias=rz.gps_bias, normal=noise('gps'))
-        self.imu = Imu(sp.imu, stream('imu'), noise('imu'))
 
         self.resting_on: str | None = None
         self.max_thrust_n = self.vehicle.thrust_n
@@ -223,6 +216,7 @@ class World:
         p0 = self.deck_motion.pad_state(0.0).position_m
         self.faults: FaultSet | None = (FaultSet(sc.faults, seed, (p0[0], p0[1]),
                                                  self.deck_mean_m) if sc.faults else None)
+        self._init_sensors(stream('camera'), noise('camera'))
         # the autopilot (deck_simulator.autopilot): in-process the world's own, engaged by
         # the first command_link (with link faults through the command link,
         # deck_simulator.link); the simulator node attaches its emulator's instead
@@ -481,6 +475,8 @@ class World:
         t = t0 + h
         self.t_s = t
         self._set_deck(t)
+        if t + 1e-9 >= self._next_sensor_s:
+            self._sample_sensors(t)
         # resting: enough gear points down on one surface (the land detector's "landed")
         c = v.contact
         if c.n_active == 0:
@@ -534,41 +530,220 @@ class World:
         """The touchdown monitor's record now, with the scenario's outcome rules applied."""
         return self.monitor.record(self.vehicle.body)
 
-    # --- sensors -----------------------------------------------------------------------------
+    # --- sensors (docs/world/sensors.md) -------------------------------------------------------
 
-    def read_camera(self) -> tuple[float, list[Block]]:
-        """One Pixy frame: (exposure stamp, [(signature, x, y, w, h), ...]).
+    def _init_sensors(self, camera_rng: random.Random, camera_normal: Normal) -> None:
+        """The seed's honest sensors (:class:`SensorSuite`), each on its own clock.
 
-        The frame is exposed ``latency_s`` before now (pose extrapolated back linearly over
-        the latency, deck evaluated exactly at the stamp). Call at ``sensors.camera.rate_hz``.
-        """
+        The clocks start before t = 0 (two periods plus the latency of the slowest sensor,
+        rounded up to whole seconds), sampling the start state, so at t = 0 every sensor has
+        delivered (the autopilot was streaming before the landing began)."""
+        sp = self.scenario.sensors
+        if not self.scenario.randomize.gps_bias:
+            lp = sp.local_position
+            sp = replace(sp, local_position=replace(
+                lp, horizontal=replace(lp.horizontal, bias_std_m=0.0)))
+        timings = (sp.imu.timing, sp.attitude.timing, sp.local_position.timing,
+                   sp.lidar.timing, sp.true_camera.timing)
+        for tp in timings:
+            if tp.rate_hz > 1.0 / self.physics_dt_s + 1e-9:
+                raise ValueError(
+                    f'a sensor rate_hz of {tp.rate_hz:g} exceeds the physics rate '
+                    f'{1.0 / self.physics_dt_s:g} Hz: it cannot be realised')
+        # whole seconds: without a random phase a clock then ticks on multiples of its period
+        lead = float(math.ceil(max(2.0 / tp.rate_hz + tp.latency_s + 5.0 * tp.latency_jitter_s
+                                   for tp in timings)))
+        suite = SensorSuite(sp, self.seed, self.params.gravity_mps2, start_s=-lead)
+        self.sensor_suite = suite
+        self.sensor_params = sp
+        cam_t = suite.camera_timing
+        self.camera = Camera(sp.camera, camera_rng, camera_normal, cam_t.period_s)
+        # a frame is rendered once all its rows are exposed (rolling readout, jitter)
+        tc = sp.true_camera
+        self._frame_margin_s = 0.5 * tc.rolling_readout_s + 4.0 * tc.exposure_jitter_s
+        self._lidar_mount = sp.lidar.mount_offset_m
+        self._latest_imu: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+            (0.0, 0.0, self.params.gravity_mps2), (0.0, 0.0, 0.0))
+        self._latest_attitude: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._latest_position: tuple[tuple[float, float, float],
+                                     tuple[float, float, float]] = ((0.0, 0.0, 0.0),
+                                                                    (0.0, 0.0, 0.0))
+        self._latest_range: float | None = None
+        self._latest_frame: tuple[float, list[Block]] = (math.nan, [])
+        #: the sensors whose delivered samples queue for :meth:`delivered` (none by default)
+        self.queued: frozenset[str] = frozenset()
+        self.inbox: dict[str, list] = {name: [] for name in SENSOR_STREAMS}
+        self._next_sensor_s = -math.inf
+        t = -lead
+        while t < 0.0:    # the start state, sampled on every clock until t = 0
+            t = min(0.0, t + self.physics_dt_s)
+            self._sample_sensors(t)
+        for box in self.inbox.values():
+            box.clear()
+
+    def idle_to(self, t_s: float) -> None:
+        """Move the clock to ``t_s`` without physics (the vehicle and its motion frozen, the
+        deck moving), sampling and delivering the sensors on the way: for tests of the
+        sensor and fault streams over long spans."""
+        self.t_s = t_s
+        self._set_deck(t_s)
+        self._sample_sensors(t_s)
+
+    def _sample_sensors(self, t_now: float) -> None:
+        """Every sample due by ``t_now`` (taken from the state now: at most one physics tick
+        old), then every sample delivered by then (faults act on delivery). A clock instant
+        within 1 ns of now counts as now (the sub-step times are sums of floats)."""
+        t = t_now + 1e-9
+        s = self.sensor_suite
         v = self.vehicle
-        cp = self.camera.params
-        lat = cp.latency_s
-        stamp = self.t_s - lat
-        if stamp < 0.0:
-            stamp, lat = self.t_s, 0.0
-        r = rot_body_to_world(v.roll - v.roll_rate * lat, v.pitch - v.pitch_rate * lat,
-                              v.yaw - v.yaw_rate * lat)
-        ox, oy, oz = cp.mount_offset_m
-        cam = (v.x - v.vx * lat + r[0][0] * ox + r[0][1] * oy + r[0][2] * oz,
-               v.y - v.vy * lat + r[1][0] * ox + r[1][1] * oy + r[1][2] * oz,
-               v.z - v.vz * lat + r[2][0] * ox + r[2][1] * oy + r[2][2] * oz)
-        cx, cy, ztop = self._beacon_at(stamp)
+        tm_imu, tm_att, tm_lp, tm_li, tm_cam = (s.imu_timing, s.attitude_timing,
+                                                s.local_position_timing, s.lidar_timing,
+                                                s.camera_timing)
+        r = None
+        while tm_imu.next_sample_s <= t:
+            ts = tm_imu.take()
+            if r is None:
+                r = rot_body_to_world(v.roll, v.pitch, v.yaw)
+            tm_imu.push(ts, s.imu.sample((v.ax, v.ay, v.az), r, body_rates_from_euler(
+                v.roll, v.pitch, v.roll_rate, v.pitch_rate, v.yaw_rate)))
+        while tm_att.next_sample_s <= t:
+            tm_att.push(tm_att.take(), s.attitude.sample(v.roll, v.pitch, v.yaw))
+        while tm_lp.next_sample_s <= t:
+            tm_lp.push(tm_lp.take(), s.local_position.sample((v.x, v.y, v.z),
+                                                             (v.vx, v.vy, v.vz)))
+        while tm_li.next_sample_s <= t:
+            ts = tm_li.take()
+            if r is None:
+                r = rot_body_to_world(v.roll, v.pitch, v.yaw)
+            ox, oy, oz = self._lidar_mount
+            origin = (v.x + r[0][0] * ox + r[0][1] * oy + r[0][2] * oz,
+                      v.y + r[1][0] * ox + r[1][1] * oy + r[1][2] * oz,
+                      v.z + r[2][0] * ox + r[2][1] * oy + r[2][2] * oz)
+            tm_li.push(ts, s.lidar.sample(origin, (-r[0][2], -r[1][2], -r[2][2]),
+                                          self._lidar_surfaces()))
+        margin = self._frame_margin_s
+        while tm_cam.next_sample_s + margin <= t:
+            tk = tm_cam.take()
+            tm_cam.push(tk, self._render_frame(tk, t))
+        queued = self.queued
+        inbox = self.inbox
+        nxt = math.inf
+        for name, tm in (('imu', tm_imu), ('attitude', tm_att), ('local_position', tm_lp),
+                         ('lidar', tm_li), ('camera', tm_cam)):
+            if tm.pending():
+                for stamp, value in tm.pop(t):
+                    value = self._deliver(name, value, t, stamp)
+                    if name in queued:
+                        inbox[name].append((stamp, value))
+            ns = tm.next_sample_s
+            if name == 'camera':
+                ns += margin
+            if ns < nxt:
+                nxt = ns
+            nd = tm.next_delivery_s()
+            if nd < nxt:
+                nxt = nd
+        self._next_sensor_s = nxt
+
+    def _deliver(self, name: str, value: Any, t: float, stamp: float) -> Any:
+        """A sample arriving at ``t``: the faults that act on the link or the reading, then
+        the latest value of that sensor."""
         fs = self.faults
+        if name == 'imu':
+            self._latest_imu = value
+        elif name == 'attitude':
+            self._latest_attitude = value
+        elif name == 'local_position':
+            if fs is not None and fs.gps:
+                off = fs.gps_offset(t)
+                if off is not None:
+                    pos = value[0]
+                    value = ((pos[0] + off[0], pos[1] + off[1], pos[2] + off[2]), value[1])
+            self._latest_position = value
+        elif name == 'lidar':
+            if fs is not None and fs.has_lidar:
+                lp = self.sensor_params.lidar
+                value = fs.lidar(t, value, lp.min_range_m, lp.max_range_m)
+            self._latest_range = value
+        elif name == 'camera':
+            self._latest_frame = (stamp, value)
+        return value
+
+    def _lidar_surfaces(self) -> list[LidarSurface]:
+        """What the lidar beam can meet now: the pad (and the ship's deck around it) and the
+        ground or the sea."""
+        lp = self.sensor_params.lidar
+        if self.ship is None:
+            cx, cy, ztop, _, _ = self._deck_now
+            return [horizontal_rectangle(cx, cy, ztop, self.pad_half_x, self.pad_half_y,
+                                         lp.pad_reflectivity),
+                    ground_plane(lp.ground_reflectivity)]
+        s = self.deck_surface
+        n = (s.nx, s.ny, s.nz)
+        u = (s.ux, s.uy, s.uz)
+        ps = self.pad_state()
+        return [LidarSurface(ps.position_m, n, u, self.pad_half_x, self.pad_half_y,
+                             lp.pad_reflectivity),
+                LidarSurface((s.cx, s.cy, s.cz), n, u, s.half_u, s.half_w,
+                             lp.deck_reflectivity),
+                ground_plane(lp.ground_reflectivity)]
+
+    def _render_frame(self, t_k: float, t: float) -> list[Block]:
+        """The Pixy frame of nominal time ``t_k`` rendered at ``t`` (after its last row):
+        the beacon's row from the pose at ``t_k``, that row's exposure time, the pose and the
+        deck at that time (extrapolated back from now), through the seed's true camera."""
+        cm = self.sensor_suite.camera
+        cm.start_frame()
+        cam_true = cm.camera
+        beacon = self._beacon_at(t_k)
+        pos, r = self._pose_back(t - t_k)
+        d = (beacon[0] - pos[0], beacon[1] - pos[1], beacon[2] - pos[2])
+        uv = cam_true.project_optical(*cam_true.optical(r, d[0], d[1], d[2]))
+        row = uv[1] if uv is not None else 0.5 * cam_true.height_px
+        te = t_k + cm.exposure_offset_s(row)
+        beacon = self._beacon_at(te)
+        pos, r = self._pose_back(t - te)
+        fs = self.faults
+        cam = self.camera
         if fs is None or not fs.has_camera:
-            return stamp, self.camera.frame(stamp, cam, r, (cx, cy, ztop))
+            return cam.frame(te, pos, r, beacon, true_camera=cam_true)
         # faults act on the exposure time; the base noise streams are drawn as without them
-        blocks = self.camera.frame(stamp, cam, r, (cx, cy, ztop),
-                                   show_beacon=not fs.beacon_hidden(stamp))
+        blocks = cam.frame(te, pos, r, beacon, show_beacon=not fs.beacon_hidden(te),
+                           true_camera=cam_true)
         if fs.blobs:
-            extra = fs.false_blobs(stamp, self.camera, cam, r, (cx, cy, ztop))
+            extra = fs.false_blobs(te, cam, pos, r, beacon)
             if extra:
                 blocks.extend(extra)
                 blocks.sort(key=lambda b: -b[3] * b[4])   # Pixy sends the largest first
-        if fs.dropout and fs.camera_empty(stamp):
-            return stamp, []
-        return stamp, blocks
+        if fs.dropout and fs.camera_empty(te):
+            return []
+        return blocks
+
+    def _pose_back(self, lag_s: float) -> tuple[tuple[float, float, float], Mat3]:
+        """Camera position and body rotation ``lag_s`` ago (linear extrapolation)."""
+        v = self.vehicle
+        r = rot_body_to_world(v.roll - v.roll_rate * lag_s, v.pitch - v.pitch_rate * lag_s,
+                              v.yaw - v.yaw_rate * lag_s)
+        ox, oy, oz = self.camera.params.mount_offset_m
+        return ((v.x - v.vx * lag_s + r[0][0] * ox + r[0][1] * oy + r[0][2] * oz,
+                 v.y - v.vy * lag_s + r[1][0] * ox + r[1][1] * oy + r[1][2] * oz,
+                 v.z - v.vz * lag_s + r[2][0] * ox + r[2][1] * oy + r[2][2] * oz), r)
+
+    def delivered(self, name: str) -> list[tuple[float, Any]]:
+        """Every ``(stamp, payload)`` of sensor ``name`` (:data:`SENSOR_STREAMS`) delivered
+        since the last call, oldest first, for the sensors in :attr:`queued` (the in-process
+        runner's way of reading: each sample reaches the stack once, stamped).
+        Payloads: ``imu`` (specific force FLU, rate FLU), ``attitude`` (roll, pitch, yaw),
+        ``local_position`` (position ENU, velocity ENU), ``lidar`` (m or None), ``camera``
+        (Pixy blocks)."""
+        box = self.inbox[name]
+        out = list(box)
+        box.clear()
+        return out
+
+    def read_camera(self) -> tuple[float, list[Block]]:
+        """The last Pixy frame delivered: (stamp, [(signature, x, y, w, h), ...])."""
+        return self._latest_frame
 
     def _beacon_at(self, t_s: float) -> tuple[float, float, float]:
         """The beacon (pad centre on its top) at ``t_s``."""
@@ -617,34 +792,27 @@ class World:
         return z / -dz
 
     def read_lidar(self) -> float | None:
-        """LidarLite range along body −z (m), None when there is no valid return."""
-        r = self.lidar.read(self.true_lidar_range())
-        fs = self.faults
-        if fs is not None and fs.has_lidar:
-            lp = self.lidar.params
-            return fs.lidar(self.t_s, r, lp.min_range_m, lp.max_range_m)
-        return r
+        """The last LIDAR-Lite range delivered (m along body −z), None without a return."""
+        return self._latest_range
 
     def read_local_position(self) -> tuple[tuple[float, float, float],
                                            tuple[float, float, float]]:
-        """GPS/EKF-like local position and velocity, ENU."""
-        v = self.vehicle
-        pos, vel = self.gps.read(self.t_s, (v.x, v.y, v.z), (v.vx, v.vy, v.vz))
-        fs = self.faults
-        if fs is not None and fs.gps:
-            off = fs.gps_offset(self.t_s)
-            if off is not None:
-                pos = (pos[0] + off[0], pos[1] + off[1], pos[2] + off[2])
-        return pos, vel
+        """The last EKF local position and velocity delivered, ENU."""
+        return self._latest_position
 
     def read_attitude(self) -> tuple[float, float, float]:
-        v = self.vehicle
-        return self.imu.attitude(v.roll, v.pitch, v.yaw)
+        """The last attitude estimate delivered (roll, pitch, yaw; the autopilot's)."""
+        return self._latest_attitude
+
+    def read_imu(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """The last IMU sample delivered: specific force and body rate, FLU."""
+        return self._latest_imu
 
     def read_accel_world(self) -> tuple[float, float, float]:
-        """Vehicle acceleration in ENU with gravity removed (IMU rotated by the EKF)."""
-        v = self.vehicle
-        return self.imu.accel(v.ax, v.ay, v.az)
+        """Vehicle acceleration in ENU with gravity removed: the last IMU sample rotated by
+        the last attitude estimate (:func:`accel_world_through`)."""
+        r, p, y = self._latest_attitude
+        return accel_world_through(self._latest_imu[0], r, p, y, self.params.gravity_mps2)
 
     # --- truth and outcome ---------------------------------------------------------------
 

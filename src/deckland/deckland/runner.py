@@ -2,11 +2,11 @@
 
 One run is the paper's mission (section 4.2): hovering at the start, landing triggered at
 t = 0, GPS approach to the landing area, search if needed, precision landing, touchdown and
-disarm — or a fallback. Everything is stepped in lock-step at the real rates (physics 400 Hz,
-estimator/planner/controllers 100 Hz, camera 50 Hz with its latency), deterministically for a
-seed, without ROS. Each node of the graph (docs/interfaces.md) is its loop core here
-(``apron_estimator.loop``, ``landing_planner.loop``, ``dob_altitude.loop``), fed in the order
-its inputs arrive in one control tick.
+disarm — or a fallback. Physics at 400 Hz, the stack's loops at ``control_hz``; every sensor
+sample reaches the stack when the world delivers it (its own clock, latency and stamp:
+docs/world/sensors.md), deterministically for a seed, without ROS. Each node of the graph
+(docs/interfaces.md) is its loop core here (``apron_estimator.loop``, ``landing_planner.loop``,
+``dob_altitude.loop``), fed in the order its inputs arrive in one control tick.
 """
 
 from __future__ import annotations
@@ -16,11 +16,13 @@ from dataclasses import asdict, dataclass, field
 import math
 from typing import Any
 
+from apron_estimator.camera import CameraParams
 from apron_estimator.estimator import ApronEstimator, EstimatorParams
 from apron_estimator.loop import EstimatorLoop
 from deck_simulator.outcome import RunOutcome, landing_outcome
 from deck_simulator.scenario import Scenario
-from deck_simulator.world import World
+from deck_simulator.sensor_imu import accel_world_through
+from deck_simulator.world import SENSOR_STREAMS, World
 from deckland_common.contract import Mode, PixyBlock, VehicleDescription
 from dob_altitude.adapter import make_controller
 from dob_altitude.loop import AltitudeLoop
@@ -39,8 +41,7 @@ class RunConfig:
     controller: str = 'dob'
     gains_profile: str = 'default'
     physics_hz: int = 400
-    control_hz: int = 100
-    camera_hz: int = 50
+    control_hz: int = 100     # the companion's loops (estimator publish, planner, altitude)
     # end of run: the landing scored (settled or crashed) or this long after the first contact
     settle_after_contact_s: float = 10.0
     record: bool = False
@@ -56,8 +57,9 @@ class RunConfig:
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f'controller must be one of {CONTROLLERS}, got {self.controller!r}')
-        if self.physics_hz % self.control_hz or self.physics_hz % self.camera_hz:
-            raise ValueError('physics_hz must be a multiple of control_hz and camera_hz')
+        if self.physics_hz % self.control_hz:
+            raise ValueError(f'physics_hz ({self.physics_hz}) must be a multiple of control_hz '
+                             f'({self.control_hz}): the loop rate cannot be realised')
         if self.physics_hz < 400:
             raise ValueError('physics_hz must be >= 400 (the Pixhawk attitude loop rate)')
 
@@ -108,6 +110,18 @@ def make_altitude_controller(config: RunConfig, vehicle: VehicleDescription | No
                            {'mass_kg': mass, **dict(config.pid_overrides)})
 
 
+def nominal_camera(scenario: Scenario) -> CameraParams:
+    """The estimator's camera: the scenario's nominal ``sensors.camera`` (what an operator
+    calibrated), not the per-seed true camera the world renders through."""
+    c = scenario.sensors.camera
+    (mx, my, mz), (mr, mp, myaw) = c.mount_offset_m, c.mount_rpy_rad
+    return CameraParams(fov_x_deg=c.fov_x_deg, fov_y_deg=c.fov_y_deg,
+                        width_px=float(c.width_px), height_px=float(c.height_px),
+                        cx_px=c.principal_point_px[0], cy_px=c.principal_point_px[1],
+                        mount_x_m=mx, mount_y_m=my, mount_z_m=mz, mount_roll_rad=mr,
+                        mount_pitch_rad=mp, mount_yaw_rad=myaw)
+
+
 def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
     """The planner is told only what an operator knows: where the landing area is."""
     ax, ay = scenario.landing_area_m
@@ -127,9 +141,13 @@ TRACE_FIELDS = (
 def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) -> RunResult:
     """Fly one seeded landing of ``scenario`` and return its outcome."""
     config = config or RunConfig()
-    world = World(scenario, seed)
+    world = World(scenario, seed, 1.0 / config.physics_hz)
+    world.queued = frozenset(SENSOR_STREAMS)
+    gravity = scenario.vehicle.gravity_mps2
     dt_ctrl = 1.0 / config.control_hz
-    estimator = EstimatorLoop(ApronEstimator(EstimatorParams()))
+    # the estimator is configured with the nominal camera; the world's differs per seed
+    estimator = EstimatorLoop(ApronEstimator(EstimatorParams(
+        camera=nominal_camera(scenario))))
     planner = PlannerLoop(LandingPlanner(planner_params_for(scenario, config)),
                           HorizontalController(HorizontalParams(
                               **dict(config.horizontal_overrides))), period_s=dt_ctrl)
@@ -148,7 +166,6 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
 
     dt = 1.0 / config.physics_hz
     ctrl_div = config.physics_hz // config.control_hz
-    cam_div = config.physics_hz // config.camera_hz
     n_steps = math.ceil(scenario.timeout_s * config.physics_hz)
 
     t_contact = None
@@ -160,17 +177,20 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     enabled = True
     # bound once: the loop below runs physics_hz times per simulated second
     world_step = world.step
-    read_position, read_attitude = world.read_local_position, world.read_attitude
+    delivered = world.delivered
+    camera_box = world.inbox['camera']
     est_attitude, est_position = estimator.on_attitude, estimator.on_local_position
     est_accel, est_lidar, est_publish = estimator.on_accel, estimator.on_lidar, estimator.publish
     plan_pose, plan_velocity, plan_apron = planner.on_pose, planner.on_velocity, planner.on_apron
     alt_attitude, alt_reference, alt_apron = (altitude.on_attitude, altitude.on_reference,
                                               altitude.on_apron)
+    roll, pitch, yaw = world.read_attitude()
+    pos, _vel = world.read_local_position()
+    autopilot = world.autopilot
 
     for k in range(n_steps + 1):
         t = k * dt
         ctrl = k % ctrl_div == 0
-        frame = world.read_camera() if k % cam_div == 0 else None
         if ctrl:
             # --- mavlink_bridge: vehicle state from the autopilot -------------------------
             if monitor is not None and commanding:
@@ -182,19 +202,27 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                     rtt = world.timesync_rtt_s(t)
                     if rtt is not None:
                         insort(replies, (t + rtt, t))
-            pos, vel = read_position()
-            roll, pitch, yaw = read_attitude()
-            # --- the sensor topics reach the estimator, the planner, the altitude loop ----
-            est_attitude(t, t, roll, pitch, yaw)
-            est_position(t, t, pos, vel)
-            est_accel(t, t, world.read_accel_world())
-            est_lidar(t, t, world.read_lidar())
-            plan_pose(t, t, pos, roll, pitch, yaw)
-            plan_velocity(t, t, vel)
-            alt_attitude(t, t, roll, pitch)
-        if frame is not None:
-            # --- pixy_driver: the frame arrives now, stamped at its (earlier) exposure -------
-            estimator.on_camera(t, frame[0], [PixyBlock(*b) for b in frame[1]])
+            # --- every sample delivered since the last tick, with its own stamp -----------
+            for stamp, att in delivered('attitude'):
+                roll, pitch, yaw = att
+                est_attitude(t, stamp, roll, pitch, yaw)
+                alt_attitude(t, stamp, roll, pitch)
+            for stamp, (f_body, _rate) in delivered('imu'):
+                # the estimator node's world acceleration: IMU through the attitude estimate
+                est_accel(t, stamp, accel_world_through(f_body, roll, pitch, yaw, gravity))
+            for stamp, (pos, vel) in delivered('local_position'):
+                est_position(t, stamp, pos, vel)
+                plan_pose(t, stamp, pos, roll, pitch, yaw)
+                plan_velocity(t, stamp, vel)
+            for stamp, rng in delivered('lidar'):
+                est_lidar(t, stamp, rng)
+            # the autopilot's land detector (EXTENDED_SYS_STATE, as the bridge relays it)
+            if autopilot is not None:
+                planner.on_landed(autopilot.landed)
+        if camera_box:
+            # --- pixy_driver: each frame when it arrives, stamped at its exposure -----------
+            for stamp, blocks in delivered('camera'):
+                estimator.on_camera(t, stamp, [PixyBlock(*b) for b in blocks])
         if ctrl:
             # --- apron_estimator -> landing_planner -> dob_altitude -----------------------
             apron = est_publish(t)

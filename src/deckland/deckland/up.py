@@ -267,7 +267,8 @@ def graph_substitutions(args, udp: UdpReservations) -> dict[str, Any]:
         'pixy_transport': 'serial' if hardware else 'udp',
         'pixy_port': args.pixy_port or '/dev/ttyACM0',
         'pixy_udp_port': pixy_port,
-        'pixy_latency_s': float(scenario.sensors.camera.latency_s) if scenario else 0.02,
+        'pixy_latency_s': (float(scenario.sensors.true_camera.timing.assumed_latency_s)
+                           if scenario else 0.036),
         'landing_area_x_m': float(scenario.apron.position_m[0]) if scenario else args.area[0],
         'landing_area_y_m': float(scenario.apron.position_m[1]) if scenario else args.area[1],
     }
