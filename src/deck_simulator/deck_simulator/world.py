@@ -36,6 +36,7 @@ from deck_simulator.sensors import (
     normal_stream,
 )
 from deck_simulator.ship import ShipMotion
+from deck_simulator.ship_link import ShipLink, ShipMessage
 from deck_simulator.touchdown import LandingRecord, Pad, TouchdownMonitor
 from deck_simulator.vehicle import Vehicle
 
@@ -233,6 +234,11 @@ class World:
         self.link: CommandLink | None = None
         if spec is not None and self.faults is not None:
             self.link = CommandLink(self.faults, seed, ap, self.rejected)
+        # the ship's own telemetry stream (deck_simulator.ship_link), if the scenario has one
+        st = sc.ship_telemetry
+        self.ship_link: ShipLink | None = (
+            ShipLink(st, self.deck_motion.pad_state, f'{seed}:ship_link') if st is not None
+            else None)
 
     # --- commands and stepping -------------------------------------------------------------
 
@@ -615,6 +621,11 @@ class World:
         if z <= 0.0:
             return 0.0
         return z / -dz
+
+    def read_ship_telemetry(self) -> list[tuple[float, ShipMessage]]:
+        """The ship's MAVLink messages arrived by now, ``(t_arrival_s, message)``."""
+        link = self.ship_link
+        return link.poll(self.t_s) if link is not None else []
 
     def read_lidar(self) -> float | None:
         """LidarLite range along body −z (m), None when there is no valid return."""
