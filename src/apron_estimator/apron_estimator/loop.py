@@ -91,8 +91,7 @@ class EstimatorLoop(InputGuard):
     def last_stamp(self) -> dict[str, float | None]:
         """The last accepted stamp per input stream (None = never)."""
         stamps = (('imu', self._t_imu), ('odom', self._t_odom), ('velocity', self._t_velocity),
-                  ('range', self._t_range), ('camera', self._t_camera),
-                  ('deck', self._t_deck))
+                  ('range', self._t_range), ('camera', self._t_camera))
         return {k: (t if t > -math.inf else None) for k, t in stamps}
 
     def _fresh(self, now_s: float, t_s: float, what: str) -> bool:
@@ -309,6 +308,7 @@ class EstimatorLoop(InputGuard):
         values = {'published': str(self.published)}
         for name, t in self.last_stamp.items():
             values[f'age_{name}_s'] = 'inf' if t is None else f'{now_s - t:.3f}'
+        values['age_deck_s'] = f'{now_s - self._t_deck:.3f}' if finite(self._t_deck) else 'inf'
         values.update({f'rejected_{k}': str(v) for k, v in self.rejected.items()})
         values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
         values.update({f'trigger_{k}': str(v) for k, v in self.triggers.items()})
