@@ -168,6 +168,11 @@ class ShipLink:
         b = self._bias
         return b[0], b[1], b[2]
 
+    @property
+    def in_flight(self) -> int:
+        """Messages sent and not yet arrived."""
+        return len(self._queue)
+
     def ship_time_ms(self, t_s: float) -> int:
         """The ship's clock (time_boot_ms, wrapping at 2^32) at our time ``t_s``."""
         p = self.params
