@@ -35,6 +35,7 @@ class DeckFusionParams:
 
     telemetry_timeout_s: float = 1.5      # a telemetry sample older than this is not used
     attitude_timeout_s: float = 1.0       # deck attitude valid while this fresh
+    attitude_extrapolation_s: float = 0.5  # roll / pitch / heading carried forward this long
     max_extrapolation_s: float = 2.0      # telemetry carried forward at most this long
     offset_tau_s: float = 5.0             # averaging time of the learnt GNSS offset
     offset_gate_m: float = 3.0            # a residual this far from the learnt offset: refused
@@ -46,7 +47,8 @@ class DeckFusionParams:
 
     def __post_init__(self) -> None:
         o = 'DeckFusionParams'
-        for name in ('telemetry_timeout_s', 'attitude_timeout_s', 'max_extrapolation_s',
+        for name in ('telemetry_timeout_s', 'attitude_timeout_s', 'attitude_extrapolation_s',
+                     'max_extrapolation_s',
                      'offset_tau_s', 'offset_gate_m', 'beacon_history_s',
                      'prediction_timeout_s', 'accel_tau_s', 'accel_window_s', 'max_accel_mps2'):
             chk.positive(f'{o}.{name}', getattr(self, name))
@@ -68,7 +70,7 @@ class DeckFusion:
         self._tel: tuple[float, Vec3, Vec3] | None = None       # (t, position, velocity)
         self._tel_accel: Vec2 = (0.0, 0.0)
         self._v_ref: tuple[float, float, float] | None = None   # (t, vx, vy) of accel
-        self._att: tuple[float, Vec3, float] | None = None      # (t, rpy, yaw rate)
+        self._att: tuple[float, Vec3, Vec3] | None = None       # (t, rpy, Euler rates)
         self._pending: list[tuple[float, float, float]] = []    # telemetry (t, x, y) to meet
         self._accel: Vec2 = (0.0, 0.0)                          # beacon-derived
         self._t_accel = -math.inf
@@ -77,9 +79,12 @@ class DeckFusion:
     # -- inputs ----------------------------------------------------------------------------
     def on_telemetry(self, t_s: float, position_m: Vec3, velocity_mps: Vec3,
                      attitude_valid: bool = False, rpy_rad: Vec3 = (0.0, 0.0, 0.0),
-                     yaw_rate_radps: float = 0.0) -> bool:
-        """One ``deck/odom`` sample at its measurement time ``t_s``; True if accepted."""
-        vals = (t_s, *position_m, *velocity_mps, *rpy_rad, yaw_rate_radps)
+                     yaw_rate_radps: float = 0.0,
+                     rates_flu_radps: Vec3 = (0.0, 0.0, 0.0)) -> bool:
+        """One ``deck/odom`` sample at its measurement time ``t_s``; True if accepted.
+        ``rates_flu_radps``: the deck's body rates (roll and pitch are carried to now with
+        the Euler rates they give, the heading with ``yaw_rate_radps``)."""
+        vals = (t_s, *position_m, *velocity_mps, *rpy_rad, yaw_rate_radps, *rates_flu_radps)
         if not all(math.isfinite(v) for v in vals):
             self.rejected['non_finite'] += 1
             return False
@@ -99,7 +104,13 @@ class DeckFusion:
             self._v_ref = (t_s, velocity_mps[0], velocity_mps[1])
         self._tel = (t_s, position_m, velocity_mps)
         if attitude_valid:
-            self._att = (t_s, rpy_rad, yaw_rate_radps)
+            roll, pitch = rpy_rad[0], rpy_rad[1]
+            wp, wq, wr = rates_flu_radps
+            cr, sr = math.cos(roll), math.sin(roll)
+            # Z-Y-X Euler kinematics: φ̇ = p + (q sφ + r cφ) tan θ, θ̇ = q cφ − r sφ
+            rates = (wp + (wq * sr + wr * cr) * math.tan(pitch), wq * cr - wr * sr,
+                     yaw_rate_radps)
+            self._att = (t_s, rpy_rad, rates)
         self._pending.append((t_s, position_m[0], position_m[1]))
         self._learn()
         return True
@@ -217,10 +228,10 @@ class DeckFusion:
         rpy: Vec3 = (0.0, 0.0, 0.0)
         yaw_rate = 0.0
         if att is not None and att_valid:
-            dt = max(0.0, t - att[0])
+            dt = min(max(0.0, t - att[0]), p.attitude_extrapolation_s)
             r, pt, y = att[1]
-            yaw_rate = att[2]
-            rpy = (r, pt, math.remainder(y + yaw_rate * dt, 2.0 * math.pi))
+            dr, dp, yaw_rate = att[2]
+            rpy = (r + dr * dt, pt + dp * dt, math.remainder(y + yaw_rate * dt, 2.0 * math.pi))
         return ApronState(
             t_s=st.t_s, tracked=st.tracked, visible=st.visible,
             time_since_seen_s=st.time_since_seen_s, rel_position_m=st.rel_position_m,

@@ -218,14 +218,15 @@ class EstimatorLoop(InputGuard):
 
     def on_deck_odom(self, now_s: float, t_s: float, position_m: Vec3, velocity_mps: Vec3,
                      attitude_valid: bool = False, rpy_rad: Vec3 = (0.0, 0.0, 0.0),
-                     yaw_rate_radps: float = 0.0) -> bool:
+                     yaw_rate_radps: float = 0.0,
+                     rates_flu_radps: Vec3 = (0.0, 0.0, 0.0)) -> bool:
         """``deck/odom``: the ship's telemetry, ENU, stamped at its measurement time (older
         than the input timeout is normal for telemetry: the deck fusion judges its age)."""
         if t_s - now_s > self.timeout_s:
             self.reject('future_stamp', 'deck/odom')
             return False
         if not self.deck.on_telemetry(t_s, position_m, velocity_mps, attitude_valid, rpy_rad,
-                                      yaw_rate_radps):
+                                      yaw_rate_radps, rates_flu_radps):
             self.reject('non_finite' if not finite(t_s) or t_s > self._t_deck
                         else 'out_of_order', 'deck/odom')
             return False

@@ -266,7 +266,8 @@ class ShipReceiver:
             odom = self.assembler.on_sample(sample) if sample is not None else None
             if odom is not None:
                 estimator.on_deck_odom(now_s, odom.t_s, odom.position_m, odom.velocity_mps,
-                                       odom.attitude_valid, odom.rpy_rad, odom.yaw_rate_radps)
+                                       odom.attitude_valid, odom.rpy_rad, odom.yaw_rate_radps,
+                                       odom.rates_flu_radps)
 
 
 def ship_receiver(scenario: Scenario) -> ShipReceiver | None:
