@@ -22,6 +22,7 @@ from deckland_common.contract import (
     DECK_SOURCE_TELEMETRY,
     ApronState,
 )
+from deckland_common.frames import mat_vec, quaternion_to_euler, rot_body_to_world
 
 from deckland_common import validate as chk
 
@@ -52,6 +53,26 @@ class DeckFusionParams:
                      'offset_tau_s', 'offset_gate_m', 'beacon_history_s',
                      'prediction_timeout_s', 'accel_tau_s', 'accel_window_s', 'max_accel_mps2'):
             chk.positive(f'{o}.{name}', getattr(self, name))
+
+
+def telemetry_from_odometry(q_wxyz: tuple[float, float, float, float],
+                            velocity_child_mps: Vec3, rates_child_radps: Vec3,
+                            attitude_var_rad2: float, attitude_max_var_rad2: float = 1.0
+                            ) -> tuple[Vec3, bool, Vec3, float, Vec3]:
+    """``deck/odom`` (nav_msgs/Odometry, twist in the deck frame) → (velocity ENU, attitude
+    valid, rpy, yaw rate, body rates): the attitude counts as known while its variance is
+    below ``attitude_max_var_rad2``; ψ̇ = (ω_y sin φ + ω_z cos φ) / cos θ."""
+    w, x, y, z = q_wxyz
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    valid = n > 0.0 and attitude_var_rad2 < attitude_max_var_rad2
+    rpy = quaternion_to_euler(w / n, x / n, y / n, z / n) if n > 0.0 else (0.0, 0.0, 0.0)
+    vel = mat_vec(rot_body_to_world(*rpy), velocity_child_mps)
+    cp = math.cos(rpy[1])
+    _, wq, wr = rates_child_radps
+    yaw_rate = (wq * math.sin(rpy[0]) + wr * math.cos(rpy[0])) / cp if abs(cp) > 1e-6 else 0.0
+    if not valid:
+        return vel, False, (0.0, 0.0, 0.0), 0.0, (0.0, 0.0, 0.0)
+    return vel, True, rpy, yaw_rate, rates_child_radps
 
 
 class DeckFusion:
