@@ -261,3 +261,42 @@ def test_link_and_decode_together_recover_the_deck_within_the_gnss_error():
     # stamps: the fastest arrivals define the offset: late by the fastest jitter at most
     assert max(abs(e) for e in stamp_err) < 0.01
     assert yaw_rate_from_body_rates(0.0, 0.0, 0.0, 0.02) == pytest.approx(0.02)
+
+
+def test_the_simulation_loop_sends_the_ship_stream_the_runner_decodes():
+    """The graph's path: SimulationLoop (ship_ss3) sends the ship's MAVLink datagrams; decoded
+    with the bridge's decoder they give the pad's position within the GNSS error."""
+    from deck_simulator.loop import SimulationLoop
+    from deck_simulator.px4_emulator import EmulatorParams, Px4Emulator
+    from deck_simulator.scenario import load_scenario
+    from deck_simulator.transport import MemoryLink
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    sc = load_scenario('ship_ss3')
+    assert sc.ship_telemetry is not None
+    datagrams: list[bytes] = []
+    emu = Px4Emulator(EmulatorParams(), transport=MemoryLink().a)
+    sim = SimulationLoop(sc, 5, emu, lambda _b: None, ship_send=datagrams.append)
+    rx = mavlink2.MAVLink(None)
+    dec = ShipTelemetryDecoder(ShipDecodeParams(min_latency_s=sc.ship_telemetry.latency_s))
+    errs = []
+    for _ in range(300):                  # 6 s
+        sim.advance(0.02)
+        pad = sim.world.pad_state().position_m
+        for d in datagrams:
+            for m in rx.parse_buffer(d) or []:
+                s = dec.on_message(sim.world.t_s, m.get_srcSystem(), m)
+                if s is not None and s.kind == 'position':
+                    errs.append(math.hypot(s.position_m[0] - pad[0], s.position_m[1] - pad[1]))
+        datagrams.clear()
+    ship = sim.world.ship_link
+    assert ship is not None
+    assert sim.counters['ship_messages'] == ship.sent - ship.lost - ship.in_flight
+    assert sim.counters['ship_messages'] > 6 * 15 * 0.85
+    bias = math.hypot(*ship.position_bias_m[:2])
+    # bias + noise + the 2.5 m/s ship moving while the fix travels (≤ ~0.4 s old here)
+    assert errs and max(errs) < bias + 0.3 + 2.6 * 0.45
+    sim2 = SimulationLoop(load_scenario('paper'), 5, Px4Emulator(
+        EmulatorParams(), transport=MemoryLink().a), lambda _b: None, ship_send=datagrams.append)
+    sim2.advance(1.0)
+    assert not datagrams and sim2.counters['ship_messages'] == 0   # a barge sends nothing

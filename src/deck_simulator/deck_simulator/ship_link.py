@@ -253,3 +253,28 @@ class ShipLink:
             t_a, _, msg = heapq.heappop(q)
             out.append((t_a, msg))
         return out
+
+
+class ShipEncoder:
+    """Ship messages → MAVLink 2 bytes from the ship's system id (the graph's simulator node
+    sends them as UDP datagrams to ``ship_telemetry_node``)."""
+
+    def __init__(self, sysid: int, compid: int = 1) -> None:
+        from pymavlink.dialects.v20 import common as mavlink2
+        self._buf = bytearray()
+        self._mav = mavlink2.MAVLink(self, srcSystem=sysid, srcComponent=compid)
+
+    def write(self, data: bytes) -> None:   # pymavlink's file interface
+        self._buf += data
+
+    def encode(self, msg: ShipMessage) -> bytes:
+        mav = self._mav
+        if isinstance(msg, GlobalPositionInt):
+            mav.global_position_int_send(msg.time_boot_ms, msg.lat, msg.lon, msg.alt,
+                                         msg.relative_alt, msg.vx, msg.vy, msg.vz, msg.hdg)
+        else:
+            mav.attitude_send(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, msg.rollspeed,
+                              msg.pitchspeed, msg.yawspeed)
+        out = bytes(self._buf)
+        self._buf.clear()
+        return out
