@@ -20,10 +20,12 @@ import pytest
 VEHICLE_BIAS = (0.6, -0.4)     # the vehicle's local-position error: the beacon's frame
 
 
-def beacon_state(t: float, tracked: bool, pos=(0.0, 0.0), vel=(0.0, 0.0)) -> ApronState:
-    """An estimator output: ``pos``/``vel`` the beacon-derived apron (vehicle + rel)."""
+def beacon_state(t: float, tracked: bool, pos=(0.0, 0.0), vel=(0.0, 0.0),
+                 rel=(0.05, -0.05)) -> ApronState:
+    """An estimator output: ``pos``/``vel`` the beacon-derived apron (vehicle + rel); the
+    vehicle hovers ``rel`` beside the beacon."""
     z = (0.0, 0.0)
-    return ApronState(t, tracked, tracked, 0.0 if tracked else 5.0, z, z, (1e-4, 1e-4), z, z,
+    return ApronState(t, tracked, tracked, 0.0 if tracked else 5.0, rel, z, (1e-4, 1e-4), z, z,
                       pos, vel, VerticalState.invalid())
 
 
@@ -159,6 +161,25 @@ def test_without_telemetry_the_beacon_gives_the_acceleration_and_the_prediction(
     assert p2.apron_velocity_mps == last_vel
     assert p2.apron_position_m[0] == pytest.approx(last_pos[0] + last_vel[0] * 2.0)
     assert fusion.fuse(beacon_state(20.5, False)).source == 'none'
+
+
+def test_the_offset_is_learnt_only_close_above_the_beacon():
+    """From beside the deck the beacon's offset is scaled by the wrong height (the sea below):
+    2 m away at 2.25x (deck 2.5 m above the water) it is 2.5 m off. Such estimates must not
+    teach the offset; once above the beacon they do."""
+    f = DeckFusion()
+    for k in range(1, 301):                      # 3 s beside: beacon 2.5 m off, 2 m away
+        t = k * 0.01
+        f.fuse(beacon_state(t, True, (10.0 + 2.5, 0.0), rel=(2.0, 0.0)))
+        if k % 10 == 0:
+            f.on_telemetry(t - 0.05, (10.0, 0.0, 2.5), (0.0, 0.0, 0.0))
+    assert f.offset_samples == 0 and f.offset_m == (0.0, 0.0)
+    for k in range(301, 801):                    # 5 s above it: the beacon right, 0.4 m east
+        t = k * 0.01
+        f.fuse(beacon_state(t, True, (10.4, 0.0), rel=(0.1, 0.0)))
+        if k % 10 == 0:
+            f.on_telemetry(t - 0.05, (10.0, 0.0, 2.5), (0.0, 0.0, 0.0))
+    assert f.offset_samples > 30 and f.offset_m == pytest.approx((0.4, 0.0), abs=1e-6)
 
 
 def test_bad_telemetry_is_refused_and_the_loop_counts_it():

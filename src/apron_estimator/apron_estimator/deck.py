@@ -40,6 +40,7 @@ class DeckFusionParams:
     max_extrapolation_s: float = 2.0      # telemetry carried forward at most this long
     offset_tau_s: float = 5.0             # averaging time of the learnt GNSS offset
     offset_gate_m: float = 3.0            # a residual this far from the learnt offset: refused
+    offset_max_rel_m: float = 0.3         # learn only with the beacon this close below
     beacon_history_s: float = 2.0         # beacon estimates kept to meet delayed telemetry
     prediction_timeout_s: float = 20.0    # constant-velocity prediction at most this long
     accel_tau_s: float = 1.0              # low-pass of the deck acceleration
@@ -50,7 +51,7 @@ class DeckFusionParams:
         o = 'DeckFusionParams'
         for name in ('telemetry_timeout_s', 'attitude_timeout_s', 'attitude_extrapolation_s',
                      'max_extrapolation_s',
-                     'offset_tau_s', 'offset_gate_m', 'beacon_history_s',
+                     'offset_tau_s', 'offset_gate_m', 'offset_max_rel_m', 'beacon_history_s',
                      'prediction_timeout_s', 'accel_tau_s', 'accel_window_s', 'max_accel_mps2'):
             chk.positive(f'{o}.{name}', getattr(self, name))
 
@@ -87,7 +88,8 @@ class DeckFusion:
         self.rejected: dict[str, int] = {'non_finite': 0, 'out_of_order': 0, 'offset_gated': 0}
         self.offset_m: Vec2 = (0.0, 0.0)   # beacon frame − telemetry frame (learnt)
         self.offset_samples = 0
-        self._beacon: deque[tuple[float, float, float, float, float]] = deque()
+        # (t, x, y, vx, vy, usable for the offset) of the beacon-derived deck
+        self._beacon: deque[tuple[float, float, float, float, float, bool]] = deque()
         self._tel: tuple[float, Vec3, Vec3] | None = None       # (t, position, velocity)
         self._tel_accel: Vec2 = (0.0, 0.0)
         self._v_ref: tuple[float, float, float] | None = None   # (t, vx, vy) of accel
@@ -144,8 +146,8 @@ class DeckFusion:
         prev = h[0]
         for e in h:
             if e[0] >= t_s:
-                if e[0] - prev[0] > 0.2:     # a gap in the track: no estimate there
-                    return None
+                if e[0] - prev[0] > 0.2 or not (e[5] and prev[5]):
+                    return None              # a gap in the track, or not usable there
                 w = 0.0 if e[0] == prev[0] else (t_s - prev[0]) / (e[0] - prev[0])
                 return (prev[1] + w * (e[1] - prev[1]), prev[2] + w * (e[2] - prev[2]))
             prev = e
@@ -220,7 +222,11 @@ class DeckFusion:
         if st.tracked:
             pos, vel = st.apron_position_m, st.apron_velocity_mps
             acc = self._beacon_accel(t, vel) if tel is None else self._tel_accel
-            h.append((t, pos[0], pos[1], vel[0], vel[1]))
+            # the camera offsets scale with the height above the surface the lidar sees: from
+            # beside the deck (the sea or ground below) they are over-scaled (estimator README,
+            # Known limitations); close above the beacon the error is that small fraction
+            usable = math.hypot(*st.rel_position_m) <= p.offset_max_rel_m
+            h.append((t, pos[0], pos[1], vel[0], vel[1], usable))
             while h and t - h[0][0] > p.beacon_history_s:
                 h.popleft()
             self._learn()
