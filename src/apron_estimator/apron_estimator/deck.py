@@ -96,6 +96,7 @@ class DeckFusion:
         self._att: tuple[float, Vec3, Vec3] | None = None       # (t, rpy, Euler rates)
         self._pending: list[tuple[float, float, float]] = []    # telemetry (t, x, y) to meet
         self._accel: Vec2 = (0.0, 0.0)                          # beacon-derived
+        self._vel_window: deque[tuple[float, float, float]] = deque()   # (t, vx, vy)
         self._t_accel = -math.inf
         self._last: tuple[float, Vec2, Vec2] | None = None      # last beacon/telemetry output
 
@@ -194,17 +195,18 @@ class DeckFusion:
                 (vx + ax * dt, vy + ay * dt))
 
     def _beacon_accel(self, t_s: float, vel: Vec2) -> Vec2:
-        h = self._beacon
+        """The deck acceleration from the beacon velocity's difference over
+        ``accel_window_s``, low-passed (amortised O(1): a window of velocities)."""
         p = self.params
-        old = None
-        for e in h:
-            if t_s - e[0] <= p.accel_window_s:
-                old = e
-                break
-        if old is None or t_s - old[0] < 0.5 * p.accel_window_s:
-            return self._accel
+        w = self._vel_window
+        w.append((t_s, vel[0], vel[1]))
+        while len(w) > 1 and t_s - w[1][0] >= p.accel_window_s:
+            w.popleft()
+        old = w[0]
         span = t_s - old[0]
-        ax, ay = (vel[0] - old[3]) / span, (vel[1] - old[4]) / span
+        if span < 0.5 * p.accel_window_s:
+            return self._accel
+        ax, ay = (vel[0] - old[1]) / span, (vel[1] - old[2]) / span
         dt = max(0.0, t_s - self._t_accel) if math.isfinite(self._t_accel) else p.accel_tau_s
         a = min(1.0, dt / p.accel_tau_s)
         cx, cy = self._accel
@@ -221,7 +223,8 @@ class DeckFusion:
         lim = p.max_accel_mps2
         if st.tracked:
             pos, vel = st.apron_position_m, st.apron_velocity_mps
-            acc = self._beacon_accel(t, vel) if tel is None else self._tel_accel
+            beacon_acc = self._beacon_accel(t, vel)   # kept current either way
+            acc = beacon_acc if tel is None else self._tel_accel
             # the camera offsets scale with the height above the surface the lidar sees: from
             # beside the deck (the sea or ground below) they are over-scaled (estimator README,
             # Known limitations); close above the beacon the error is that small fraction
@@ -233,6 +236,7 @@ class DeckFusion:
             source = DECK_SOURCE_BEACON
         else:
             h.clear()
+            self._vel_window.clear()
             self._t_accel = -math.inf
             self._accel = (0.0, 0.0)
             if tel is not None:
