@@ -190,7 +190,7 @@ def test_lidar_is_tilt_corrected():
 
 def test_predict_update_equal_filterpy():
     """The unrolled 5×5 predict / scalar updates against filterpy with the same F, Q, H, R."""
-    p = VerticalParams()
+    p = VerticalParams(adapt_noise=False)   # a fixed R, as filterpy's
     vf = VerticalFilter(p)
     vf.on_altitude(0.0, 3.0, 0.1)
     vf.on_lidar(0.001, 2.5)

@@ -611,3 +611,42 @@ def test_loop_clock_carries_every_camera_frame(make):
     at_once = node.triggers['camera'] - trig0['camera']
     assert loop_states + at_once >= len(states) - 1
     assert at_once <= frames // 2              # most frames ride a tick
+
+
+def test_deck_odom_gives_the_deck_when_the_beacon_is_not_seen(make):
+    """The ship's telemetry (deck/odom, twist in the deck frame) reaches apron/state as the
+    TELEMETRY source with the deck's attitude; the beacon is not in view."""
+    from deckland_common.frames import euler_to_quaternion
+    from deckland_common.ros_node import RELIABLE_QOS
+    from nav_msgs.msg import Odometry
+    _node, helper = make()
+    helper.show_beacon = False
+    pub = helper.node.create_publisher(Odometry, 'deck/odom', RELIABLE_QOS)
+    assert wait_for(lambda: pub.get_subscription_count() >= 1)
+    yaw = 0.5
+    end = time.monotonic() + 3.0
+    seen = None
+    while time.monotonic() < end and seen is None:
+        od = Odometry()
+        Helper.stamp(od.header, helper.now_s() - 0.2)    # 0.2 s old, as a radio link
+        od.header.frame_id, od.child_frame_id = 'map', 'deck'
+        p = od.pose.pose.position
+        p.x, p.y, p.z = 20.0, -5.0, 2.5
+        o = od.pose.pose.orientation
+        o.w, o.x, o.y, o.z = euler_to_quaternion(0.02, -0.01, yaw)
+        od.pose.covariance[21] = od.pose.covariance[28] = od.pose.covariance[35] = 1e-5
+        od.twist.twist.linear.x = 2.0                   # 2 m/s along the bow
+        pub.publish(od)
+        time.sleep(0.1)
+        st = latest_state(helper)
+        if st is not None and st.source == 'telemetry':
+            seen = st
+    assert seen is not None and not seen.tracked
+    # position carried forward by ~0.2-0.3 s at 2 m/s along the heading 0.5 rad
+    x, y = seen.apron_position_m
+    assert math.hypot(x - 20.0, y + 5.0) < 2.0 * 0.6
+    assert math.atan2(y + 5.0, x - 20.0) == pytest.approx(yaw, abs=0.1)
+    assert seen.apron_velocity_mps == pytest.approx((2.0 * math.cos(yaw), 2.0 * math.sin(yaw)),
+                                                    abs=0.05)
+    assert seen.deck_attitude_valid
+    assert seen.deck_rpy_rad == pytest.approx((0.02, -0.01, yaw), abs=1e-3)

@@ -11,8 +11,13 @@ import pytest
 DT = 1.0 / 400.0
 
 
+#: fault scenarios whose fault is not a faults.py type: the ship's telemetry outage is the
+#: ship link's own (deck_simulator.ship_link, ``ship_telemetry.outage_*``)
+NOT_FAULTS_PY = ('fault_telemetry_loss',)
+
+
 def test_every_fault_type_has_a_builtin_scenario_with_that_one_fault():
-    names = [n for n in builtin_names() if n.startswith('fault_')]
+    names = [n for n in builtin_names() if n.startswith('fault_') and n not in NOT_FAULTS_PY]
     assert {n[len('fault_'):] for n in names} == set(FAULT_TYPES)
     for name in names:
         sc = load_scenario(name)
@@ -27,8 +32,19 @@ def test_every_fault_type_has_a_builtin_scenario_with_that_one_fault():
         w.read_local_position()
 
 
+def test_the_telemetry_loss_scenario_is_ship_ss3_with_an_outage_mid_approach():
+    sc = load_scenario('fault_telemetry_loss')
+    st = sc.ship_telemetry
+    assert st is not None and not sc.faults
+    assert (st.outage_start_s, st.outage_duration_s) == (4.0, 30.0)
+    base = load_scenario('ship_ss3')
+    assert base.ship_telemetry is not None
+    assert dataclasses.replace(sc, name='ship_ss3', ship_telemetry=base.ship_telemetry) == base
+
+
 def test_the_brief_numbers_of_the_fault_scenarios():
-    f = {n: load_scenario(n).faults[0] for n in builtin_names() if n.startswith('fault_')}
+    f = {n: load_scenario(n).faults[0] for n in builtin_names()
+         if n.startswith('fault_') and n not in NOT_FAULTS_PY}
     assert f['fault_beacon_occlusion'].duration_s == 3.0
     assert (f['fault_false_blobs'].mode, f['fault_false_blobs'].near_beacon_m) == (
         'persistent', 0.6)

@@ -114,7 +114,9 @@ def test_apron_state_carries_every_field_of_the_value_types():
     """The estimator's ApronState / VerticalState map field for field (renames listed)."""
     ApronState, VerticalState = contract('ApronState'), contract('VerticalState')
     renamed = {'t_s': 'header', 'camera_stamp_s': 'camera_stamp',
-               'rel_position_var_m2': 'rel_position_cov_m2'}
+               'rel_position_var_m2': 'rel_position_cov_m2',
+               'deck_rpy_rad': 'deck_orientation',
+               'deck_yaw_rate_radps': 'deck_angular_velocity_radps'}
     msg = _msg_fields('ApronState')
     for f in dataclasses.fields(ApronState):
         assert renamed.get(f.name, f.name) in msg, f.name

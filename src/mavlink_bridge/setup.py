@@ -23,6 +23,7 @@ setup(
     entry_points={
         'console_scripts': [
             'mavlink_bridge_node = mavlink_bridge.node:main',
+            'ship_telemetry_node = mavlink_bridge.ship_node:main',
         ],
     },
 )

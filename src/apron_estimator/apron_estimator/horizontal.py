@@ -107,6 +107,39 @@ class AxisPairKF:
                 self.ay + dt * (2.0 * self.by + dt * self.cy))
 
 
+class NoiseScale:
+    """A measurement-noise scale λ ≥ 1 learnt from the filter's innovations (covariance
+    matching, Mehra 1972): E[ν²] = H P⁻ Hᵀ + R, so each accepted update gives the sample
+    (ν² − H P⁻ Hᵀ) / R_nominal, averaged exponentially (``weight`` per sample); the filter
+    uses R = λ R_nominal with λ the average clamped to [1, ``max_scale``]. A sensor noisier
+    than configured then widens its own gate and weighs less, instead of being gated away.
+    Samples are clipped at ``4 · max_scale`` (one outlier moves λ by at most that · weight).
+    """
+
+    def __init__(self, weight: float = 0.02, max_scale: float = 25.0) -> None:
+        chk.in_range('NoiseScale.weight', weight, 0.0, 1.0)
+        chk.require(max_scale >= 1.0, 'NoiseScale.max_scale', 'must be >= 1', max_scale)
+        self.weight = float(weight)
+        self.max_scale = float(max_scale)
+        self.ratio = 1.0
+        self.samples = 0
+
+    @property
+    def scale(self) -> float:
+        """λ: the factor on the nominal measurement variance."""
+        return min(self.max_scale, max(1.0, self.ratio))
+
+    def update(self, innovation_sq: float, prior_var: float, nominal_var: float) -> None:
+        """One accepted update's ν², H P⁻ Hᵀ and nominal R."""
+        if not nominal_var > 0.0:
+            return
+        x = min((innovation_sq - prior_var) / nominal_var, 4.0 * self.max_scale)
+        if x != x:   # NaN
+            return
+        self.ratio += self.weight * (x - self.ratio)
+        self.samples += 1
+
+
 class AccelIntegrator:
     """Zero-order-held horizontal vehicle acceleration and its running integrals.
 
@@ -231,9 +264,18 @@ class HorizontalParams:
     verify_dwell_s: float = 0.5       # ... after hovering there this long (filter settled)
     deck_rise_m: float = 0.2          # the beacon's surface is higher by at least this
     max_rivals: int = 4
+    # adaptive measurement noise (NoiseScale): R = λ σ² with λ from the innovations
+    adapt_noise: bool = True
+    adapt_weight: float = 0.02        # per accepted frame (≈ 1 s at 50 Hz)
+    adapt_max_scale: float = 25.0     # λ ≤ this (σ up to 5× the configured one)
 
     def __post_init__(self) -> None:
         o = 'HorizontalParams'
+        if not isinstance(self.adapt_noise, bool):
+            raise ValueError(f'{o}.adapt_noise must be a bool, got {self.adapt_noise!r}')
+        chk.in_range(f'{o}.adapt_weight', self.adapt_weight, 0.0, 1.0)
+        chk.require(self.adapt_max_scale >= 1.0, f'{o}.adapt_max_scale', 'must be >= 1',
+                    self.adapt_max_scale)
         chk.non_negative(f'{o}.accel_psd_m2ps3', self.accel_psd_m2ps3)
         chk.positive(f'{o}.sigma0_m', self.sigma0_m)
         chk.non_negative(f'{o}.sigma_per_m', self.sigma_per_m)
@@ -314,6 +356,8 @@ class HorizontalTracker:
         self.events: dict[str, int] = {'acquired': 0, 'lost': 0, 'restarts': 0,
                                         'rescaled': 0, 'rivals_rejected': 0, 'switches': 0,
                                         'probes': 0}
+        #: the camera's noise scale: a property of the sensor, kept across track restarts
+        self.noise = NoiseScale(self.params.adapt_weight, self.params.adapt_max_scale)
         self.reset()
 
     def reset(self) -> None:
@@ -419,7 +463,8 @@ class HorizontalTracker:
         if not good:
             return False
         sigma = self.params.sigma_m(height_m)
-        r = sigma * sigma
+        r0 = sigma * sigma
+        r = r0 * self.noise.scale if self.params.adapt_noise else r0
         if self.mode == 'idle' or self.t_filter is None:   # (a track always has a filter time)
             self._start(t_s, good[0][0], good[0][1], r)
             self.visible = True
@@ -452,6 +497,9 @@ class HorizontalTracker:
             return False
         self.rejected['gated'] += len(good) - 1
         best = good[best_i]
+        if self.params.adapt_noise and self.mode == 'tracking':
+            nx, ny = best[0] - kf.px, best[1] - kf.py
+            self.noise.update(0.5 * (nx * nx + ny * ny), 0.5 * (kf.ax + kf.ay), r0)
         kf.update(best[0], best[1], r)
         if self.mode == 'tracking' and (len(good) > 1 or self.rivals):
             self._rivals(t_s, good, best_i, surface_m, spot_m)

@@ -18,6 +18,7 @@ from deckland_common.checks import InputGuard, finite
 from deckland_common.contract import ApronState, PixyBlock
 from deckland_common.frames import quaternion_to_euler
 
+from apron_estimator.deck import DeckFusion, DeckFusionParams
 from apron_estimator.estimator import ApronEstimator
 from apron_estimator.inputs import (
     LocalPosition,
@@ -61,12 +62,16 @@ class EstimatorLoop(InputGuard):
 
     def __init__(self, estimator: ApronEstimator, input_timeout_s: float = 0.5,
                  gravity_mps2: float = 9.81, position_pair_tolerance_s: float = 0.005,
-                 imu_min_spacing_s: float = 0.005) -> None:
+                 imu_min_spacing_s: float = 0.005,
+                 deck: DeckFusionParams | None = None) -> None:
         chk.positive('EstimatorLoop.input_timeout_s', input_timeout_s)
         chk.positive('EstimatorLoop.gravity_mps2', gravity_mps2)
         chk.non_negative('EstimatorLoop.imu_min_spacing_s', imu_min_spacing_s)
         super().__init__(REJECTED, WITHHELD)
         self.estimator = estimator
+        #: the moving deck: beacon, ship telemetry (deck/odom), prediction (apron_estimator.deck)
+        self.deck = DeckFusion(deck)
+        self._t_deck = -math.inf
         self.pairer = LocalPositionPairer(position_pair_tolerance_s)
         self.timeout_s = float(input_timeout_s)
         self.gravity_mps2 = float(gravity_mps2)
@@ -211,6 +216,23 @@ class EstimatorLoop(InputGuard):
         self.estimator.on_camera(t_s, blocks)
         return True
 
+    def on_deck_odom(self, now_s: float, t_s: float, position_m: Vec3, velocity_mps: Vec3,
+                     attitude_valid: bool = False, rpy_rad: Vec3 = (0.0, 0.0, 0.0),
+                     yaw_rate_radps: float = 0.0,
+                     rates_flu_radps: Vec3 = (0.0, 0.0, 0.0)) -> bool:
+        """``deck/odom``: the ship's telemetry, ENU, stamped at its measurement time (older
+        than the input timeout is normal for telemetry: the deck fusion judges its age)."""
+        if t_s - now_s > self.timeout_s:
+            self.reject('future_stamp', 'deck/odom')
+            return False
+        if not self.deck.on_telemetry(t_s, position_m, velocity_mps, attitude_valid, rpy_rad,
+                                      yaw_rate_radps, rates_flu_radps):
+            self.reject('non_finite' if not finite(t_s) or t_s > self._t_deck
+                        else 'out_of_order', 'deck/odom')
+            return False
+        self._t_deck = t_s
+        return True
+
     # --- output ------------------------------------------------------------------------------
 
     def withhold_reason(self, now_s: float) -> str:
@@ -230,7 +252,7 @@ class EstimatorLoop(InputGuard):
             reason = 'clock_not_advancing'   # downstream rejects repeated or older t_s
         st: ApronState | None = None
         if not reason:
-            st = self.estimator.state(now_s)
+            st = self.deck.fuse(self.estimator.state(now_s))
             if st.has_nan():  # defensive: the core never does this
                 reason = 'non_finite_output'
         if reason or st is None:
@@ -287,16 +309,19 @@ class EstimatorLoop(InputGuard):
         values = {'published': str(self.published)}
         for name, t in self.last_stamp.items():
             values[f'age_{name}_s'] = 'inf' if t is None else f'{now_s - t:.3f}'
+        values['age_deck_s'] = f'{now_s - self._t_deck:.3f}' if finite(self._t_deck) else 'inf'
         values.update({f'rejected_{k}': str(v) for k, v in self.rejected.items()})
         values.update({f'withheld_{k}': str(v) for k, v in self.withheld.items()})
         values.update({f'trigger_{k}': str(v) for k, v in self.triggers.items()})
         values.update({f'core_rejected_{k}': str(v)
                        for k, v in self.estimator.rejected.items()})
+        values.update({f'deck_rejected_{k}': str(v) for k, v in self.deck.rejected.items()})
         st = self.last_state
         if st is not None:
             values.update(tracked=str(st.tracked), visible=str(st.visible),
                           time_since_seen_s=f'{st.time_since_seen_s:.3f}',
                           vertical_valid=str(st.vertical.valid),
                           height_m=f'{st.vertical.height_m:.3f}',
-                          surface_epoch=str(st.vertical.surface_epoch))
+                          surface_epoch=str(st.vertical.surface_epoch),
+                          deck_source=st.source)
         return values

@@ -36,6 +36,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, PointCloud, Range
 from std_msgs.msg import Bool
 
+from apron_estimator.deck import telemetry_from_odometry
 from apron_estimator.estimator import ApronEstimator
 from apron_estimator.loop import UNKNOWN_VAR, EstimatorLoop
 from apron_estimator.node_params import (
@@ -91,6 +92,8 @@ class ApronEstimatorNode(GuardedNode, Node):
         self.create_subscription(TwistStamped, 'vehicle/velocity', self._on_velocity,
                                  SENSOR_QOS)
         self.create_subscription(Range, 'vehicle/range', self._on_range, SENSOR_QOS)
+        # the ship's telemetry (mavlink_bridge ship_telemetry node), when there is one
+        self.create_subscription(Odometry, 'deck/odom', self._on_deck_odom, RELIABLE_QOS)
         self._build_messages(p)
         self.create_timer(1.0, self._publish_diagnostics)
         # the estimator is not thread-safe: callbacks and the loop thread take this lock
@@ -151,6 +154,16 @@ class ApronEstimatorNode(GuardedNode, Node):
     def _on_odom(self, msg: Odometry) -> None:
         p = msg.pose.pose.position
         self.core.on_position(self._now_s(), stamp_to_s(msg.header.stamp), (p.x, p.y, p.z))
+
+    @_locked
+    def _on_deck_odom(self, msg: Odometry) -> None:
+        pp, o = msg.pose.pose.position, msg.pose.pose.orientation
+        tw = msg.twist.twist
+        vel, valid, rpy, yaw_rate, rates = telemetry_from_odometry(
+            (o.w, o.x, o.y, o.z), (tw.linear.x, tw.linear.y, tw.linear.z),
+            (tw.angular.x, tw.angular.y, tw.angular.z), msg.pose.covariance[21])
+        self.core.on_deck_odom(self._now_s(), stamp_to_s(msg.header.stamp),
+                               (pp.x, pp.y, pp.z), vel, valid, rpy, yaw_rate, rates)
 
     @_locked
     def _on_velocity(self, msg: TwistStamped) -> None:

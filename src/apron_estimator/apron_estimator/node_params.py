@@ -89,6 +89,14 @@ ESTIMATOR_DESCRIPTIONS = {
     'vertical.max_tilt_rad': 'no lidar fusion beyond this roll/pitch',
     'vertical.late_tolerance_s': 'samples this much older than the filter are applied now; '
                                  'older ones are out of order',
+    'vertical.adapt_noise': 'lidar variance scaled by the noise learnt from the innovations '
+                            '(covariance matching, >= the configured sigma)',
+    'vertical.adapt_weight': 'weight of one accepted range in the learnt lidar noise',
+    'vertical.adapt_max_scale': 'learnt lidar variance at most this times sigma_lidar_m^2',
+    'horizontal.adapt_noise': 'camera variance scaled by the noise learnt from the innovations '
+                              '(covariance matching, >= the configured sigma)',
+    'horizontal.adapt_weight': 'weight of one accepted detection in the learnt camera noise',
+    'horizontal.adapt_max_scale': 'learnt camera variance at most this times sigma^2',
     'beacon_signature': 'Pixy signature of the beacon (0 = any)',
     'attitude_history_s': 'attitude history kept for exposure-stamp look-ups',
     'max_attitude_gap_s': 'camera frame rejected without an attitude sample this close',

@@ -17,7 +17,7 @@ import math
 
 from deckland_common.contract import VerticalState
 
-from apron_estimator.horizontal import AccelIntegrator
+from apron_estimator.horizontal import AccelIntegrator, NoiseScale
 from deckland_common import validate as chk
 
 _UPPER = tuple((i, j) for i in range(5) for j in range(i, 5))
@@ -48,6 +48,10 @@ class VerticalParams:
     range_max_m: float = 40.0
     max_tilt_rad: float = 0.7              # no lidar fusion beyond this roll/pitch
     late_tolerance_s: float = 0.05         # older stamps (vs the filter) are applied 'now'
+    # adaptive lidar noise (horizontal.NoiseScale): R = λ σ_lidar² with λ from the innovations
+    adapt_noise: bool = True
+    adapt_weight: float = 0.01             # per accepted range (≈ 1 s at 100 Hz)
+    adapt_max_scale: float = 25.0          # λ ≤ this (σ up to 5× sigma_lidar_m)
 
     def __post_init__(self) -> None:
         o = 'VerticalParams'
@@ -66,6 +70,11 @@ class VerticalParams:
         if self.surface_model not in ('accel', 'velocity'):
             raise ValueError(f"{o}.surface_model must be 'accel' or 'velocity', "
                              f'got {self.surface_model!r}')
+        if not isinstance(self.adapt_noise, bool):
+            raise ValueError(f'{o}.adapt_noise must be a bool, got {self.adapt_noise!r}')
+        chk.in_range(f'{o}.adapt_weight', self.adapt_weight, 0.0, 1.0)
+        if self.adapt_max_scale < 1.0:
+            raise ValueError(f'{o}.adapt_max_scale must be >= 1')
         if not isinstance(self.use_vz, bool):
             raise ValueError(f'{o}.use_vz must be a bool, got {self.use_vz!r}')
         if self.max_tilt_rad >= math.pi / 2:
@@ -79,6 +88,8 @@ class VerticalFilter:
         self.params = params if params is not None else VerticalParams()
         self._accel_state = self.params.surface_model == 'accel'
         self.accel = AccelIntegrator(history_s=2.0)
+        #: the lidar's noise scale (a property of the sensor: kept across resets)
+        self.lidar_noise = NoiseScale(self.params.adapt_weight, self.params.adapt_max_scale)
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'range': 0, 'tilt': 0,
                                          'outlier': 0, 'altitude_gated': 0, 'dropout': 0}
         self.reset()
@@ -271,7 +282,8 @@ class VerticalFilter:
         if not self.initialised:
             self._initialise(t_s, h)
             return
-        r = p.sigma_lidar_m ** 2
+        r0 = p.sigma_lidar_m ** 2
+        r = self._lidar_var()
         u = self._p
         c = (u[0] - u[2], u[1] - u[6], u[2] - u[9], u[3] - u[10], u[4] - u[11])
         s = c[0] - c[2] + r
@@ -281,6 +293,8 @@ class VerticalFilter:
             if self._pending:
                 self.rejected['outlier'] += len(self._pending)
                 self._pending = []
+            if p.adapt_noise:
+                self.lidar_noise.update(nu * nu, c[0] - c[2], r0)
             self._scalar_update(c, s, nu)
             self.t_lidar_ok = t_s
             return
@@ -296,6 +310,12 @@ class VerticalFilter:
             pend.clear()
             self._rebase(jump, h)
             self.t_lidar_ok = t_s
+
+    def _lidar_var(self) -> float:
+        """The lidar variance used: σ_lidar², times the learnt scale when adapting."""
+        p = self.params
+        r = p.sigma_lidar_m ** 2
+        return r * self.lidar_noise.scale if p.adapt_noise else r
 
     # -- initialisation and re-basing ------------------------------------------------------
     def _initialise(self, t_s: float, h: float) -> None:
@@ -320,7 +340,7 @@ class VerticalFilter:
         """Surface states re-derived from z_s = z_v − h: copy z_v's correlations."""
         p = self.params
         P = self.P
-        r = p.sigma_lidar_m ** 2
+        r = self._lidar_var()
         for j in range(5):
             P[2][j] = P[j][2] = 0.0
             P[3][j] = P[j][3] = 0.0

@@ -23,6 +23,7 @@ from deck_simulator.link import ImpairedLink
 from deck_simulator.outcome import landing_outcome, outcome_dict
 from deck_simulator.px4_emulator import Px4Emulator
 from deck_simulator.scenario import Scenario
+from deck_simulator.ship_link import ShipEncoder
 from deck_simulator.world import Truth, World
 
 #: planner modes that do not count as "landing triggered" (time_to_land_s starts at the first
@@ -74,7 +75,8 @@ class SimulationLoop:
                  pixy_send: Callable[[bytes], None], physics_rate_hz: float = 400.0,
                  truth_rate_hz: float = 50.0, link_downlink: str = 'cut',
                  firmware: Callable[[World], Autopilot] | None = None,
-                 relay: tuple[Any, Any] | None = None) -> None:
+                 relay: tuple[Any, Any] | None = None,
+                 ship_send: Callable[[bytes], None] | None = None) -> None:
         if (emulator is None) == (firmware is None):
             raise ValueError('SimulationLoop: give either an emulator or a firmware backend')
         self.scenario = scenario
@@ -108,6 +110,12 @@ class SimulationLoop:
                     self.link = companion = ImpairedLink(companion, world, seed, link_downlink)
                 self.relay = (companion, fw)
         self.pixy_send = pixy_send
+        # the ship's own MAVLink stream (deck_simulator.ship_link), when the scenario has one
+        self.ship_send = ship_send if world.ship_link is not None else None
+        self._ship_encoder: ShipEncoder | None = None
+        if self.ship_send is not None and scenario.ship_telemetry is not None:
+            st = scenario.ship_telemetry
+            self._ship_encoder = ShipEncoder(st.sysid, st.compid)
         self.h_s = 1.0 / physics_rate_hz
         sp = scenario.sensors
         world.queued = frozenset(('camera',))
@@ -122,7 +130,8 @@ class SimulationLoop:
         self.outcome: dict | None = None
         self.counters = {'substeps': 0, 'pixy_frames': 0, 'pixy_blocks_dropped': 0,
                          'pixy_send_errors': 0, 'offboard_steps': 0, 'autopilot_steps': 0,
-                         'relayed_up': 0, 'relayed_down': 0}
+                         'relayed_up': 0, 'relayed_down': 0, 'ship_messages': 0,
+                         'ship_send_errors': 0}
         self.rejected: dict[str, int] = {'bad_dt': 0, 'bad_mode': 0}
         self.last_kind = 'firmware'
         self._faults_dormant = emulator is None and fs is not None
@@ -206,6 +215,8 @@ class SimulationLoop:
                 world.faults.start_at(self.trigger_t_s)
             if self.relay is not None:
                 self._relay()
+        if self._ship_encoder is not None:
+            self._ship()
         world.step(self.h_s)      # the autopilot flies the non-offboard modes in here
         self.counters['substeps'] += 1
         t = world.t_s
@@ -226,6 +237,18 @@ class SimulationLoop:
         accel_body, rates = world.read_imu()
         emulator.publish_state(t, pos, vel, roll, pitch, yaw, rates, accel_body,
                                world.read_lidar(), world.resting_on is not None)
+
+    def _ship(self) -> None:
+        """The ship's messages that arrived by now (the link model's latency and loss),
+        sent as MAVLink datagrams."""
+        enc, send = self._ship_encoder, self.ship_send
+        assert enc is not None and send is not None
+        for _t, msg in self.world.read_ship_telemetry():
+            try:
+                send(enc.encode(msg))
+                self.counters['ship_messages'] += 1
+            except (OSError, ValueError):
+                self.counters['ship_send_errors'] += 1
 
     def _camera(self, blocks: list) -> None:
         keep = [b for b in blocks if block_in_range(*b)]

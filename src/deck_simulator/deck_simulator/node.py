@@ -78,6 +78,10 @@ PARAMS = [
     ParamSpec('pixy_udp_address', '127.0.0.1', "where pixy_driver listens (its "
               "'udp_bind_address')", is_ipv4, 'must be an IPv4 literal'),
     in_range('pixy_udp_port', 14600, 1, 65535, "pixy_driver's 'udp_port'"),
+    ParamSpec('ship_udp_address', '127.0.0.1', "where ship_telemetry_node listens (its "
+              "'ship_url' udpin address); scenarios with ship_telemetry only", is_ipv4,
+              'must be an IPv4 literal'),
+    in_range('ship_udp_port', 14570, 1, 65535, "ship_telemetry_node's 'ship_url' port"),
     ParamSpec('realtime_factor', 1.0, 'sim seconds per wall second', lambda v: 0.0 < v <= 20.0,
               'must be in (0, 20]'),
     ParamSpec('physics_rate_hz', 400.0, 'physics sub-step rate (the Pixhawk attitude loop runs '
@@ -116,6 +120,7 @@ class DeckSimulatorNode(Node):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._pixy_sock: socket.socket | None = None
+        self._ship_sock: socket.socket | None = None
         self.emulator: Px4Emulator | None = None
         self.hil: Px4Hil | ArduPilotJson | None = None   # the firmware in lockstep
         self._links: list = []
@@ -160,7 +165,8 @@ class DeckSimulatorNode(Node):
                                             int(max(time.time() - 1420070400.0, 0.0) * 1e5))
             self.sim = SimulationLoop(scenario, p['seed'], self.emulator, self._pixy_sender(),
                                       p['physics_rate_hz'], p['truth_rate_hz'],
-                                      p['mavlink_fault_downlink'])
+                                      p['mavlink_fault_downlink'],
+                                      ship_send=self._ship_sender(scenario))
             local, target = link.local_address, f"MAVLink {p['mavlink_url']}"
         self.schedule: TickSchedule | None = None
         self.thread_errors = 0
@@ -193,6 +199,19 @@ class DeckSimulatorNode(Node):
             sock.sendto(data, addr)
 
         return pixy_send
+
+    def _ship_sender(self, scenario):
+        """The ship's MAVLink datagrams to ``ship_udp_address:ship_udp_port`` (None without
+        ship telemetry in the scenario)."""
+        if scenario.ship_telemetry is None:
+            return None
+        self._ship_sock = sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        addr = (self.cfg['ship_udp_address'], self.cfg['ship_udp_port'])
+
+        def ship_send(data: bytes) -> None:
+            sock.sendto(data, addr)
+
+        return ship_send
 
     def _px4_loop(self, scenario, p) -> SimulationLoop:
         """PX4 SITL flies the world (lockstep on TCP ``px4_sim_port``); with
@@ -402,6 +421,9 @@ class DeckSimulatorNode(Node):
             if closable is not None:
                 with contextlib.suppress(Exception):
                     closable.close()
+        if self._ship_sock is not None:
+            with contextlib.suppress(Exception):
+                self._ship_sock.close()
         if self._pixy_sock is not None:
             with contextlib.suppress(Exception):
                 self._pixy_sock.close()

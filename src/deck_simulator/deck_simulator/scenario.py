@@ -21,6 +21,7 @@ import yaml
 
 from deck_simulator.faults import FaultSpec, parse_faults
 from deck_simulator.sensor_suite import SensorSuiteParams
+from deck_simulator.ship_link import ShipTelemetryParams
 from deck_simulator.ship_params import ShipParams
 from deck_simulator.touchdown import OutcomeRules
 from deck_simulator.vehicle import VehicleParams
@@ -143,6 +144,8 @@ class Scenario:
     faults: tuple[FaultSpec, ...] = ()   # entries may be given as mappings (parsed here)
     #: the landing's outcome rules (touchdown.OutcomeRules; docs/world/contact.md)
     outcome: OutcomeRules = field(default_factory=OutcomeRules)
+    #: the ship's own MAVLink telemetry (deck_simulator.ship_link); None: no telemetry
+    ship_telemetry: ShipTelemetryParams | None = None
 
     def __post_init__(self) -> None:
         require(self.timeout_s > 0, 'timeout_s', 'must be > 0', self.timeout_s)
@@ -199,6 +202,8 @@ def _convert(tp: Any, value: Any, path: str, base: Any = None) -> Any:
         return value
     if path == 'faults':
         return parse_faults(value)
+    if path == 'ship_telemetry':
+        return None if value is None else _convert(ShipTelemetryParams, value, path)
     if path == 'apron.ship':
         return None if value is None else ShipParams.from_mapping(value, path)
     if tp is tuple or origin is tuple:

@@ -32,6 +32,7 @@ from deck_simulator.sensor_lidar import ground_plane, horizontal_rectangle
 from deck_simulator.sensor_suite import SensorSuite
 from deck_simulator.sensors import Block, Camera, Normal, lidar_range_along, normal_stream
 from deck_simulator.ship import ShipMotion
+from deck_simulator.ship_link import ShipLink, ShipMessage
 from deck_simulator.touchdown import LandingRecord, Pad, TouchdownMonitor
 from deck_simulator.vehicle import Vehicle
 
@@ -227,6 +228,11 @@ class World:
         self.link: CommandLink | None = None
         if spec is not None and self.faults is not None:
             self.link = CommandLink(self.faults, seed, ap, self.rejected)
+        # the ship's own telemetry stream (deck_simulator.ship_link), if the scenario has one
+        st = sc.ship_telemetry
+        self.ship_link: ShipLink | None = (
+            ShipLink(st, self.deck_motion.pad_state, f'{seed}:ship_link') if st is not None
+            else None)
 
     # --- commands and stepping -------------------------------------------------------------
 
@@ -790,6 +796,11 @@ class World:
         if z <= 0.0:
             return 0.0
         return z / -dz
+
+    def read_ship_telemetry(self) -> list[tuple[float, ShipMessage]]:
+        """The ship's MAVLink messages arrived by now, ``(t_arrival_s, message)``."""
+        link = self.ship_link
+        return link.poll(self.t_s) if link is not None else []
 
     def read_lidar(self) -> float | None:
         """The last LIDAR-Lite range delivered (m along body −z), None without a return."""

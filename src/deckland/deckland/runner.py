@@ -30,6 +30,7 @@ from landing_planner.horizontal import HorizontalController, HorizontalParams
 from landing_planner.loop import PlannerLoop
 from landing_planner.planner import LandingPlanner, PlannerParams
 from mavlink_bridge.core import LinkMonitor, LinkMonitorParams
+from mavlink_bridge.ship import DeckOdomAssembler, ShipDecodeParams, ShipTelemetryDecoder
 
 CONTROLLERS = ('dob', 'pid', 'constant-rate')
 
@@ -161,6 +162,8 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     replies: list[tuple[float, float]] = []   # (t_received, t_sent), sorted
     commanding = True
 
+    ship_rx = ship_receiver(scenario)
+
     trace: dict[str, list[float]] = {k: [] for k in TRACE_FIELDS} if config.record else {}
     modes = list(Mode)
 
@@ -216,6 +219,8 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
                 plan_velocity(t, stamp, vel)
             for stamp, rng in delivered('lidar'):
                 est_lidar(t, stamp, rng)
+            if ship_rx is not None:
+                ship_rx.feed(t, world.read_ship_telemetry(), estimator)
             # the autopilot's land detector (EXTENDED_SYS_STATE, as the bridge relays it)
             if autopilot is not None:
                 planner.on_landed(autopilot.landed)
@@ -271,6 +276,37 @@ def run_landing(scenario: Scenario, seed: int, config: RunConfig | None = None) 
     if config.record:
         result.trace = trace
     return result
+
+
+class ShipReceiver:
+    """The bridge's ship-telemetry side in-process: decode (mavlink_bridge.ship), assemble
+    ``deck/odom``, hand it to the estimator loop — what the graph does over UDP and a topic."""
+
+    def __init__(self, sysid: int, decode: ShipDecodeParams) -> None:
+        self.sysid = sysid
+        self.decoder = ShipTelemetryDecoder(decode)
+        self.assembler = DeckOdomAssembler()
+
+    def feed(self, now_s: float, messages: list[tuple[float, Any]],
+             estimator: EstimatorLoop) -> None:
+        for t_rx, msg in messages:
+            sample = self.decoder.on_message(t_rx, self.sysid, msg)
+            odom = self.assembler.on_sample(sample) if sample is not None else None
+            if odom is not None:
+                estimator.on_deck_odom(now_s, odom.t_s, odom.position_m, odom.velocity_mps,
+                                       odom.attitude_valid, odom.rpy_rad, odom.yaw_rate_radps,
+                                       odom.rates_flu_radps)
+
+
+def ship_receiver(scenario: Scenario) -> ShipReceiver | None:
+    """The receiver of the scenario's ship telemetry (the operator knows the ship's system
+    id and the local frame's geodetic origin), None without telemetry."""
+    st = scenario.ship_telemetry
+    if st is None:
+        return None
+    return ShipReceiver(st.sysid, ShipDecodeParams(
+        ship_sysid=st.sysid, origin_lat_deg=st.origin_lat_deg, origin_lon_deg=st.origin_lon_deg,
+        origin_alt_m=st.origin_alt_m))
 
 
 def _record(trace, t, pos, truth, vert, apron, out, alt_out, mode_index) -> None:

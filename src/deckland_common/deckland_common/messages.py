@@ -13,15 +13,24 @@ import re
 from typing import Any
 
 from deckland_common.contract import (
+    DECK_SOURCE_BEACON,
+    DECK_SOURCE_NONE,
+    DECK_SOURCE_PREDICTION,
+    DECK_SOURCE_TELEMETRY,
     VERTICAL_FRAMES,
     ApronState,
     Mode,
     PlannerOutput,
     VerticalState,
 )
+from deckland_common.frames import euler_to_quaternion, quaternion_to_euler
 
 #: ``ApronState.source`` values (the constants of ApronState.msg)
-SOURCE_NONE, SOURCE_BEACON = 0, 1
+SOURCE_NONE, SOURCE_BEACON, SOURCE_TELEMETRY, SOURCE_PREDICTION = 0, 1, 2, 3
+SOURCE_CODES = {DECK_SOURCE_NONE: SOURCE_NONE, DECK_SOURCE_BEACON: SOURCE_BEACON,
+                DECK_SOURCE_TELEMETRY: SOURCE_TELEMETRY,
+                DECK_SOURCE_PREDICTION: SOURCE_PREDICTION}
+SOURCE_NAMES = {code: name for name, code in SOURCE_CODES.items()}
 #: ``AltitudeState.controller`` values
 CONTROLLER_CODES = {'dob': 0, 'pid': 1}
 _STEP = re.compile(r'Step (\d+)')
@@ -67,7 +76,7 @@ def fill_apron_state(msg: Any, st: ApronState, frame_id: str = '') -> Any:
     s_to_time(st.t_s, msg.header.stamp)
     msg.header.frame_id = frame_id
     s_to_time(st.camera_stamp_s, msg.camera_stamp)
-    msg.source = SOURCE_BEACON if st.tracked else SOURCE_NONE
+    msg.source = SOURCE_CODES.get(st.source, SOURCE_NONE)
     msg.tracked = st.tracked
     msg.visible = st.visible
     msg.time_since_seen_s = st.time_since_seen_s
@@ -79,6 +88,16 @@ def fill_apron_state(msg: Any, st: ApronState, frame_id: str = '') -> Any:
     msg.rel_velocity_body_mps = st.rel_velocity_body_mps
     msg.apron_position_m = st.apron_position_m
     msg.apron_velocity_mps = st.apron_velocity_mps
+    msg.apron_accel_mps2 = st.apron_accel_mps2
+    msg.deck_attitude_valid = st.deck_attitude_valid
+    roll, pitch, yaw = st.deck_rpy_rad if st.deck_attitude_valid else (0.0, 0.0, 0.0)
+    q, w = msg.deck_orientation, msg.deck_angular_velocity_radps
+    q.w, q.x, q.y, q.z = euler_to_quaternion(roll, pitch, yaw)
+    # only the yaw rate is carried: the deck-frame rate of a pure heading change
+    # (Z-Y-X kinematics with φ̇ = θ̇ = 0): ψ̇ · (−sin θ, cos θ sin φ, cos θ cos φ)
+    r = st.deck_yaw_rate_radps if st.deck_attitude_valid else 0.0
+    cp = math.cos(pitch)
+    w.x, w.y, w.z = -r * math.sin(pitch), r * cp * math.sin(roll), r * cp * math.cos(roll)
     v, mv = st.vertical, msg.vertical
     mv.valid = v.valid
     mv.height_m = v.height_m
@@ -95,6 +114,28 @@ def fill_apron_state(msg: Any, st: ApronState, frame_id: str = '') -> Any:
 
 def _pair(a: Any) -> tuple[float, float]:
     return (float(a[0]), float(a[1]))
+
+
+def _deck_fields(m: Any) -> dict[str, Any]:
+    """The moving-deck fields of an ``ApronState`` message, as contract keyword arguments."""
+    source = SOURCE_NAMES.get(int(m.source))
+    if source is None:
+        raise ValueError(f'unknown source {m.source}')
+    valid = bool(m.deck_attitude_valid)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    yaw_rate = 0.0
+    if valid:
+        q, w = m.deck_orientation, m.deck_angular_velocity_radps
+        norm = math.sqrt(q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z)
+        if not norm > 0.0:
+            raise ValueError('deck_orientation is not a rotation')
+        rpy = quaternion_to_euler(q.w / norm, q.x / norm, q.y / norm, q.z / norm)
+        cp = math.cos(rpy[1])
+        # ψ̇ = (ω_y sin φ + ω_z cos φ) / cos θ (Z-Y-X Euler kinematics)
+        yaw_rate = ((float(w.y) * math.sin(rpy[0]) + float(w.z) * math.cos(rpy[0])) / cp
+                    if abs(cp) > 1e-6 else 0.0)
+    return {'source': source, 'apron_accel_mps2': _pair(m.apron_accel_mps2),
+            'deck_attitude_valid': valid, 'deck_rpy_rad': rpy, 'deck_yaw_rate_radps': yaw_rate}
 
 
 def apron_state_from_msg(m: Any) -> tuple[ApronState | None, str, str]:
@@ -120,7 +161,8 @@ def apron_state_from_msg(m: Any) -> tuple[ApronState | None, str, str]:
             rel_velocity_body_mps=_pair(m.rel_velocity_body_mps),
             apron_position_m=_pair(m.apron_position_m),
             apron_velocity_mps=_pair(m.apron_velocity_mps), vertical=vertical,
-            camera_stamp_s=(time_to_s(cam) if cam.sec or cam.nanosec else -math.inf))
+            camera_stamp_s=(time_to_s(cam) if cam.sec or cam.nanosec else -math.inf),
+            **_deck_fields(m))
     except (IndexError, TypeError, ValueError, AttributeError) as exc:
         return None, 'bad_size', f'apron/state: {exc}'
     if st.has_nan() or cov[1] != cov[1] or cov[2] != cov[2]:
