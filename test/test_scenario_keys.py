@@ -16,6 +16,7 @@ from deck_simulator.scenario import (
     load_scenario,
     scenario_from_dict,
 )
+from deck_simulator.ship_link import ShipEncoder, ShipTelemetryParams
 from deck_simulator.ship_params import ShipParams
 from deck_simulator.world import SENSOR_STREAMS, World
 from deckland.runner import RunConfig, run_landing
@@ -67,6 +68,12 @@ SPECIAL: dict[tuple[str, ...], dict] = {
     ('vehicle', 'thrust_to_weight'): {'candidates': [1.2]},
     ('outcome', 'tip_over_tilt_rad'): {'candidates': [0.01]},
     ('outcome', 'max_bounce_height_m'): {'candidates': [0.001]},
+    # ppm of a clock stamped in ms: a change shows after seconds only when it is large
+    ('ship_telemetry', 'clock_drift_ppm'): {'candidates': [2000.0, 500.0]},
+    ('ship_telemetry', 'outage_start_s'): {
+        'with_value': {'ship_telemetry': {'outage_duration_s': 2.0}}, 'candidates': [1.0]},
+    ('ship_telemetry', 'outage_duration_s'): {
+        'with_value': {'ship_telemetry': {'outage_start_s': 1.0}}, 'candidates': [2.0]},
 }
 
 
@@ -86,6 +93,9 @@ def leaves(cls: type, obj, path: tuple[str, ...] = ()):
         here = (*path, f.name)
         if here == ('apron', 'ship'):
             yield from leaves(ShipParams, load_scenario('ship_ss3').apron.ship, here)
+        elif here == ('ship_telemetry',):
+            yield from leaves(ShipTelemetryParams, load_scenario('ship_ss3').ship_telemetry,
+                              here)
         elif dataclasses.is_dataclass(tp):
             yield from leaves(tp, value, here)
         else:
@@ -95,7 +105,8 @@ def leaves(cls: type, obj, path: tuple[str, ...] = ()):
 def context(path: tuple[str, ...]) -> dict:
     """The YAML a key is varied in: a ship for the ship's keys, the heave model whose key it
     is for the heave's; else the paper's scenario (plus the key's SPECIAL context)."""
-    if path[:2] == ('apron', 'ship') or SPECIAL.get(path, {}).get('ship'):
+    if path[:2] == ('apron', 'ship') or path[0] == 'ship_telemetry' \
+            or SPECIAL.get(path, {}).get('ship'):
         return yaml.safe_load((DATA / 'ship_ss3.yaml').read_text(encoding='utf-8'))
     extra = SPECIAL.get(path, {}).get('context', {})
     if path[:2] == ('apron', 'heave'):
@@ -264,7 +275,23 @@ def test_a_sensor_rate_the_physics_cannot_realise_is_refused(tmp_path):
         RunConfig(control_hz=300)
 
 
-CHECKS = (drop, drop_beside, flight)   # cheapest first; a key must change one of them
+def ship_link(sc: Scenario) -> str:
+    """Four seconds of the ship's MAVLink stream as it arrives (deck_simulator.ship_link),
+    encoded from the ship's system id as the graph sends it; '' without ship telemetry."""
+    st = sc.ship_telemetry
+    if st is None:
+        return ''
+    w = World(sc, 3)
+    enc = ShipEncoder(st.sysid, st.compid)
+    out = []
+    for _ in range(round(4.0 / DT)):
+        w.step(DT)
+        out.extend((t, enc.encode(m)) for t, m in w.read_ship_telemetry())
+    return _digest(out)
+
+
+#: cheapest first; a key must change one of them
+CHECKS = (ship_link, drop, drop_beside, flight)
 
 
 @pytest.mark.timeout(900)   # ~30 s of CPU; the wall time follows the machine's load
