@@ -232,6 +232,7 @@ class _Latch:
     t_invalid: float | None = None
     over_deck: bool = False      # FALLBACK entered over the tracked deck: keep following it
     follow_track: bool = False   # HOLD over the predicted track (a moving deck)
+    go_around: bool = False      # ALIGN after a go-around: climb back before descending
     t_excursion: float | None = None   # debounce: since when the timer's condition is off
     committed: bool = False      # FINAL: the descent is committed (else holding)
     windowed: bool = False       # ... into a predicted window (the looser commit leash)
@@ -512,9 +513,11 @@ class LandingPlanner:
             return True
         return abs(_wrap(target - vehicle_yaw)) <= self.params.yaw_tolerance_rad
 
-    def _debounced(self, ok: bool, t_s: float, start: float | None) -> float | None:
-        """A timer started at ``start`` that survives excursions (``ok`` False) shorter
-        than ``timer_debounce_s`` (issue 13, part 5); returns the new start (None = reset)."""
+    def _debounced(self, ok: bool, t_s: float, dt_s: float,
+                   start: float | None) -> float | None:
+        """A timer started at ``start`` that survives excursions (``ok`` False, each sample
+        lasting ``dt_s``) shorter than ``timer_debounce_s`` (issue 13, part 5); returns the
+        new start (None = reset)."""
         latch = self._l
         if ok:
             latch.t_excursion = None
@@ -523,7 +526,7 @@ class LandingPlanner:
             return None
         if latch.t_excursion is None:
             latch.t_excursion = t_s
-        if t_s - latch.t_excursion >= self.params.timer_debounce_s:
+        if t_s + dt_s - latch.t_excursion >= self.params.timer_debounce_s - 1e-9:
             latch.t_excursion = None
             return None
         return start
@@ -554,7 +557,8 @@ class LandingPlanner:
 
     # --- switching -----------------------------------------------------------------------
     def _switch_to(self, mode: Mode, t_s: float, reason: str, over_deck: bool = False,
-                   entry_now: bool = True, follow_track: bool = False) -> None:
+                   entry_now: bool = True, follow_track: bool = False,
+                   go_around: bool = False) -> None:
         """Enter ``mode`` for ``reason`` (logged in every output): new bookkeeping (the
         invalid-input timer carries over), then the mode's entry actions (``entry_now=False``
         for a service call: at the start of the next step)."""
@@ -563,7 +567,7 @@ class LandingPlanner:
         self._state = _STATES[mode]
         self.reason = reason
         self._l = _Latch(t_mode=t, t_invalid=self._l.t_invalid, over_deck=over_deck,
-                         follow_track=follow_track)
+                         follow_track=follow_track, go_around=go_around)
         if entry_now:
             self._run_entry()
 
@@ -666,7 +670,8 @@ class LandingPlanner:
             self.go_arounds += 1
             self._switch_to(Mode.ALIGN, tk.t_s, f'deck broke the prediction ({mon_reason}, '
                             f'{worst:.1f} sigma): go around {self.go_arounds} of '
-                            f'{p.max_go_arounds} (climb over the pad, keep tracking, retry)')
+                            f'{p.max_go_arounds} (climb over the pad, keep tracking, retry)',
+                            go_around=True)
 
     def _check_landed(self, tk: _Tick) -> None:
         """FINAL, FALLBACK: Step 15 → Step 16."""
@@ -979,7 +984,7 @@ class _Approach(_State):
         arrived = (pl._path.done and pos is not None
                    and math.hypot(pos[0] - lx, pos[1] - ly) <= p.arrival_radius_m)
         # debounced: one noisy position sample outside the radius does not restart it
-        latch.t_arrived = pl._debounced(arrived, tk.t_s, latch.t_arrived)
+        latch.t_arrived = pl._debounced(arrived, tk.t_s, tk.dt_s, latch.t_arrived)
         if (arrived and latch.t_arrived is not None
                 and tk.t_s - latch.t_arrived >= p.arrival_wait_s):
             pl._search_or_fallback(tk.t_s, 'no target at the landing area (Step 3)')
@@ -1007,11 +1012,14 @@ class _Align(_State):
         dist = math.hypot(tk.rel[0], tk.rel[1])
         close = tk.target_ok and dist <= p.acceptance_radius_m and not pl._ambiguous
         # debounced (issue 13, part 5): a single noisy sample does not restart the hold
-        latch.t_in_radius = pl._debounced(close, tk.t_s, latch.t_in_radius)
+        latch.t_in_radius = pl._debounced(close, tk.t_s, tk.dt_s, latch.t_in_radius)
         if (close and latch.t_in_radius is not None
                 and tk.t_s - latch.t_in_radius >= p.acceptance_hold_s):
             if not (tk.veh_ok and pl._yaw_aligned(tk.vehicle.yaw_rad)):
                 return    # yaw alignment: turning to the deck's heading first
+            h, hold = pl._height, latch.hold_height_m
+            if latch.go_around and h is not None and hold is not None and h < hold - 0.05:
+                return    # a go-around climbs back to the hover height over the pad first
             pl._switch_to(Mode.DESCEND, tk.t_s, f'horizontally close ({dist:.2f} m) for '
                           f'{p.acceptance_hold_s:.1f} s (Step 5 → Step 6)')
 
