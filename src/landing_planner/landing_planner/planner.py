@@ -29,6 +29,7 @@ from deckland_common.contract import (
 
 from landing_planner.commit_window import (
     CommitParams,
+    CommitWindow,
     DescentPlan,
     MonitorParams,
     PredictionMonitor,
@@ -57,6 +58,7 @@ _LANDING_MODES = (Mode.APPROACH, Mode.ALIGN, Mode.DESCEND, Mode.FINAL, Mode.SEAR
                   Mode.FALLBACK)
 _AIRBORNE_MODES = (*_LANDING_MODES, Mode.TAKEOFF, Mode.HOLD)
 _DECK_MODES = (Mode.ALIGN, Mode.DESCEND, Mode.FINAL)   # over the deck: align the heading
+_BEST_WAIT_S = 3.0     # FINAL hold past its timeout: wait this long at most for the best commit
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,6 +116,8 @@ class PlannerParams:
     commit_leash_m: float = 0.02        # final_leash_m of a descent committed into a window
     commit_check_s: float = 0.1         # find_window every this often while holding
     commit_follow_lag_s: float = 0.25   # DescentPlan.follow_lag_s (vehicle + estimator lag)
+    commit_plan_speed_mps: float = 0.065  # DescentPlan closing speed: what the leashed
+    #                                     descent achieves (README), not final_speed_mps
     max_go_arounds: int = 2             # deck broke the prediction: at most this many
     predictor_warmup_updates: int = 20  # ChannelParams.warmup_updates of the heave channel
     predictor_min_calibration: int = 25  # ChannelParams.min_calibration (scored paths)
@@ -622,9 +626,13 @@ class LandingPlanner:
         p = self.params
         latch = self._l
         t = tk.t_s
-        if t - latch.t_mode >= p.commit_timeout_s:
+        late = t - latch.t_mode >= p.commit_timeout_s
+        # past the timeout with a ready prediction: the best commit it offers within one
+        # horizon more (find_window's best_commit_s), then, bounded, as before
+        if late and (not self.predictor.ready
+                     or t - latch.t_mode >= p.commit_timeout_s + _BEST_WAIT_S):
             why = 'window' if self.predictor.ready else 'ready prediction'
-            self._commit_now(t, f'no commit {why} within {p.commit_timeout_s:.1f} s of '
+            self._commit_now(t, f'no commit {why} within {t - latch.t_mode:.1f} s of '
                              'holding: final descent as before (Step 10)', False)
             return
         if t - latch.t_check < p.commit_check_s or not self.predictor.ready:
@@ -637,17 +645,48 @@ class LandingPlanner:
                 or abs(self._zref.z_dot_mps) > p.final_speed_mps + 0.01):
             return     # still settling onto the hold height
         latch.t_check = t
-        v = tk.vehicle
-        nx, ny = pad_normal_xy(v.roll_rad, v.pitch_rad, v.yaw_rad)
-        plan = DescentPlan(height_m=max(h - p.gear_height_m, 0.01),
-                           closing_speed_mps=p.final_speed_mps,
-                           follow_lag_s=p.commit_follow_lag_s,
-                           vehicle_vz_mps=float(v.velocity_mps[2]),
-                           vehicle_normal_x=nx, vehicle_normal_y=ny)
-        w = find_window(t, self.predictor.snapshot(), plan, self._commit)
+        w = self._window(t, tk.vehicle, h)
         if w.commit_now:
             self._commit_now(t, f'commit window open: contact in {w.now_contact_s - t:.1f} s '
                              f'at <= {w.now_speed_hi_mps:.2f} m/s (Step 10)', True)
+        elif late and w.best_commit_s <= t + 0.5 * p.commit_check_s:
+            self._commit_now(t, f'no window within {p.commit_timeout_s:.1f} s: the best '
+                             f'commit offered (contact at <= {w.best_speed_hi_mps:.2f} m/s, '
+                             'Step 10)', True)
+
+    def _window(self, t_s: float, v: VehicleState, h: float) -> CommitWindow:
+        """The commit window for the final descent flown from height ``h`` now."""
+        p = self.params
+        nx, ny = pad_normal_xy(v.roll_rad, v.pitch_rad, v.yaw_rad)
+        plan = DescentPlan(height_m=max(h - p.gear_height_m, 0.01),
+                           closing_speed_mps=p.commit_plan_speed_mps,
+                           follow_lag_s=p.commit_follow_lag_s,
+                           vehicle_vz_mps=float(v.velocity_mps[2]),
+                           vehicle_normal_x=nx, vehicle_normal_y=ny)
+        return find_window(t_s, self.predictor.snapshot(), plan, self._commit)
+
+    def _recheck_commit(self, tk: _Tick) -> None:
+        """A windowed descent that fell behind its plan (the vehicle descends slower than the
+        plan's closing speed) can carry the contact into a reversal: every
+        ``commit_check_s`` the descent is re-planned from where it is; when continuing now is
+        no longer inside a window it stops and holds again (FINAL hold), above the landed
+        band only."""
+        p = self.params
+        latch = self._l
+        h = self._height
+        if (not latch.windowed or h is None or not (tk.vert_ok and tk.veh_ok)
+                or h - p.gear_height_m <= p.landed_height_tol_m
+                or tk.t_s - latch.t_check < p.commit_check_s or not self.predictor.ready):
+            return
+        latch.t_check = tk.t_s
+        w = self._window(tk.t_s, tk.vehicle, h)
+        if (w.commit_now or not math.isfinite(w.now_speed_hi_mps)
+                or w.now_speed_hi_mps <= self._commit.max_normal_speed_mps + 0.03):
+            return     # (hysteresis against chattering; no contact found: the monitor's)
+        latch.committed = latch.windowed = False
+        self._monitor.disarm()
+        self.reason = (f'the committed descent left its window (contact now at <= '
+                       f'{w.now_speed_hi_mps:.2f} m/s): holding again (Step 10)')
 
     def _watch_commit(self, tk: _Tick) -> None:
         """Committed: the deck broke the prediction → go around (climb over the pad, keep
@@ -656,6 +695,10 @@ class LandingPlanner:
         if not mon.armed:
             return
         broken = mon.update(tk.t_s, self.predictor)
+        if not broken:
+            self._recheck_commit(tk)
+            if not self._l.committed:
+                return
         if mon.expired and not broken:
             mon.disarm()
             return
