@@ -85,6 +85,9 @@ def test_track_forgets_a_prediction_older_than_its_timeout():
     tr.update(0.0, telemetry(0.0, (3.0, 0.0), (1.0, 0.0), (0.0, 0.0)), accepted=False)
     assert tr.at(4.0).source == DECK_SOURCE_PREDICTION
     assert tr.at(6.0).source == DECK_SOURCE_NONE and tr.at(6.0).position_m == (1.0, 1.0)
+    # ... but it remembers the deck moved: the planner then never lands "where it is"
+    # (ship_ss3 seed 100002 landed in the water after the track timed out)
+    assert tr.max_speed_mps == pytest.approx(1.0)
 
 
 # --- intercept ---------------------------------------------------------------------------------

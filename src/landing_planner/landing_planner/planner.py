@@ -58,6 +58,7 @@ _LANDING_MODES = (Mode.APPROACH, Mode.ALIGN, Mode.DESCEND, Mode.FINAL, Mode.SEAR
                   Mode.FALLBACK)
 _AIRBORNE_MODES = (*_LANDING_MODES, Mode.TAKEOFF, Mode.HOLD)
 _DECK_MODES = (Mode.ALIGN, Mode.DESCEND, Mode.FINAL)   # over the deck: align the heading
+_MOVING_MPS = 0.2     # a deck once tracked faster than this is "moving" (no Step 14 landing)
 _BEST_WAIT_S = 3.0     # FINAL hold past its timeout: wait this long at most for the best commit
 
 
@@ -591,7 +592,8 @@ class LandingPlanner:
         if search.retry():
             self._switch_to(Mode.SEARCH, t_s, f'{why}: search attempt {search.attempts} '
                             f'of {search.max_attempts} (Steps 11-12)')
-        elif self._tp.moving and not self._over_deck():
+        elif (self._tp.moving or self._track.max_speed_mps > _MOVING_MPS) \
+                and not self._over_deck():
             # Step 14 "land where it is" would land on the sea beside a moving deck
             self._switch_to(Mode.HOLD, t_s, f'{why}: {search.attempts} search attempts used '
                             'on a moving deck: holding over its predicted track at the '
