@@ -18,7 +18,8 @@ from landing_planner.planner import DESCENT_PROFILES, PlannerParams
 
 #: Meaning of every PlannerParams field exposed as a ROS parameter (same name).
 PLANNER_DESCRIPTIONS: dict[str, str] = {
-    'max_xy_dist_m': 'accept a target only this close (m) to the landing area',
+    'max_xy_dist_m': 'accept a target only this close (m) to where the deck is predicted (the '
+                     'landing area before any fix)',
     'acceptance_radius_m': 'horizontally close (m) to the target: may descend (paper 4.2)',
     'acceptance_hold_s': 'stay within the acceptance radius this long (s) before descending',
     'acceptance_hysteresis': 'leave acceptance_radius x this → pause the descent and re-align',
