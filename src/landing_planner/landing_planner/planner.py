@@ -615,9 +615,11 @@ class LandingPlanner:
         """FINAL holds and waits for a window (not on the deck-blind constant-rate profile)."""
         return self.params.timed_touchdown and self.params.descent_profile == 'deck_relative'
 
-    def _commit_now(self, t_s: float, reason: str, arm: bool) -> None:
+    def _commit_now(self, t_s: float, reason: str, arm: bool, windowed: bool) -> None:
+        """Start the final descent; ``arm``: watch the prediction (go-around);
+        ``windowed``: into a window (the commit leash, re-planned on the way down)."""
         self._l.committed = True
-        self._l.windowed = arm
+        self._l.windowed = windowed
         self.reason = reason
         if not (arm and self._monitor.arm(self.predictor)):
             self._monitor.disarm()
@@ -635,7 +637,7 @@ class LandingPlanner:
                      or t - latch.t_mode >= p.commit_timeout_s + _BEST_WAIT_S):
             why = 'window' if self.predictor.ready else 'ready prediction'
             self._commit_now(t, f'no commit {why} within {t - latch.t_mode:.1f} s of '
-                             'holding: final descent as before (Step 10)', False)
+                             'holding: final descent as before (Step 10)', False, False)
             return
         if t - latch.t_check < p.commit_check_s or not self.predictor.ready:
             return
@@ -650,11 +652,11 @@ class LandingPlanner:
         w = self._window(t, tk.vehicle, h)
         if w.commit_now:
             self._commit_now(t, f'commit window open: contact in {w.now_contact_s - t:.1f} s '
-                             f'at <= {w.now_speed_hi_mps:.2f} m/s (Step 10)', True)
+                             f'at <= {w.now_speed_hi_mps:.2f} m/s (Step 10)', True, True)
         elif late and w.best_commit_s <= t + 0.5 * p.commit_check_s:
             self._commit_now(t, f'no window within {p.commit_timeout_s:.1f} s: the best '
                              f'commit offered (contact at <= {w.best_speed_hi_mps:.2f} m/s, '
-                             'Step 10)', True)
+                             'Step 10)', True, False)
 
     def _window(self, t_s: float, v: VehicleState, h: float) -> CommitWindow:
         """The commit window for the final descent flown from height ``h`` now."""
