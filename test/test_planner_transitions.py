@@ -117,14 +117,26 @@ def test_align_to_descend_after_hold_time_in_radius_only():
     d = aligned_driver()
     d.run(0.3)
     assert d.out.mode is Mode.ALIGN            # 0.5 s hold not yet elapsed
-    d.beacon = (0.3, 0.0)                       # leaves the 0.15 m radius: timer restarts
-    d.run(0.1)
+    # leaves the 0.15 m radius for longer than the debounce (0.3 s): the timer restarts
+    d.beacon = (0.3, 0.0)
+    d.run(0.4)
     d.beacon = (0.05, 0.0)
     d.run(0.45)
     assert d.out.mode is Mode.ALIGN
     d.run(0.1)
     assert d.out.mode is Mode.DESCEND and 'Step 5 → Step 6' in d.out.reason
     assert d.out.z_d_dot_mps <= 0.0
+
+
+def test_a_short_excursion_out_of_the_radius_does_not_restart_the_hold():
+    # issue 13, part 5: one noisy sample (here 0.1 s of them) must not restart the timer
+    d = aligned_driver()
+    d.run(0.3)
+    d.beacon = (0.3, 0.0)
+    d.run(0.1)
+    d.beacon = (0.05, 0.0)
+    d.run(0.15)
+    assert d.out.mode is Mode.DESCEND
 
 
 def test_align_holds_height_and_tracks_the_target_with_feed_forward():

@@ -14,7 +14,8 @@ tilt angle β of R e3 satisfies |a_h| = g tan β. Hence
 so positive pitch (nose down) accelerates forward and positive roll (right side down)
 accelerates to −y body — the conventions of :mod:`deckland_common.frames`.
 
-Control law (world ENU): a_cmd = k_p e_p + k_d (v_ff − v) + k_i ∫ e_p dt, limited in norm to
+Control law (world ENU): a_cmd = a_ff + k_p e_p + k_d (v_ff − v) + k_i ∫ e_p dt (a_ff: the
+deck's acceleration fed forward), limited in norm to
 min(max_accel, g tan(max_tilt)). The integrator runs only while |e_p| < integral_zone (it is
 for steady disturbances such as wind, not for the transit), is frozen while the command is
 saturated and the error would push it further (conditional integration), and is clamped.
@@ -97,11 +98,14 @@ class HorizontalController:
 
     def step(self, setpoint_m: tuple[float, float], velocity_ff_mps: tuple[float, float],
              position_m: tuple[float, ...], velocity_mps: tuple[float, ...], yaw_rad: float,
-             dt_s: float, precise: bool = False) -> tuple[float, float]:
+             dt_s: float, precise: bool = False,
+             accel_ff_mps2: tuple[float, float] = (0.0, 0.0)) -> tuple[float, float]:
         """One control step; returns (roll_rad, pitch_rad) in the FLU convention.
 
-        ``precise`` selects the stiffer gain set (over the deck). The integral is stored as
-        the acceleration k_i ∫e it contributes, so switching gains is bumpless.
+        ``precise`` selects the stiffer gain set (over the deck); ``accel_ff_mps2`` (the
+        deck's acceleration, world ENU) is added to the command before the limit. The
+        integral is stored as the acceleration k_i ∫e it contributes, so switching gains is
+        bumpless.
         Non-finite inputs are rejected (counted, the last command is returned).
         """
         try:
@@ -110,12 +114,13 @@ class HorizontalController:
             px, py = float(position_m[0]), float(position_m[1])
             vx, vy = float(velocity_mps[0]), float(velocity_mps[1])
             yaw = float(yaw_rad)
+            afx, afy = float(accel_ff_mps2[0]), float(accel_ff_mps2[1])
         except (TypeError, ValueError, IndexError):
             self.rejected['nan'] += 1
             return self._last
         # a NaN/inf anywhere makes the sum non-finite (finite inputs would have to be near
         # 1e308 to overflow it; positions, speeds and angles never are)
-        if not math.isfinite(sx + sy + fx + fy + px + py + vx + vy + yaw):
+        if not math.isfinite(sx + sy + fx + fy + px + py + vx + vy + yaw + afx + afy):
             self.rejected['nan'] += 1
             return self._last
         if not (math.isfinite(dt_s) and dt_s > 0.0):
@@ -127,9 +132,9 @@ class HorizontalController:
         else:
             kp, kd, ki = p.kp, p.kd, p.ki
         ex, ey = sx - px, sy - py
-        # a_cmd = k_p e_p + k_d (v_ff − v) + k_i ∫e_p
-        ux = kp * ex + kd * (fx - vx)
-        uy = kp * ey + kd * (fy - vy)
+        # a_cmd = a_ff + k_p e_p + k_d (v_ff − v) + k_i ∫e_p
+        ux = afx + kp * ex + kd * (fx - vx)
+        uy = afy + kp * ey + kd * (fy - vy)
         ax = ux + self._ix
         ay = uy + self._iy
         norm = math.hypot(ax, ay)

@@ -256,7 +256,8 @@ class PlannerLoop(InputGuard):
         pos, vel = vehicle.position_m, vehicle.velocity_mps
         roll, pitch = self.horizontal.step(out.setpoint_m, out.velocity_ff_mps,
                                            (pos[0], pos[1]), (vel[0], vel[1]),
-                                           vehicle.yaw_rad, dt, precise=out.precise_xy)
+                                           vehicle.yaw_rad, dt, precise=out.precise_xy,
+                                           accel_ff_mps2=out.accel_ff_mps2)
         sp, ff = out.setpoint_m, out.velocity_ff_mps
         if not (finite(roll) and finite(pitch) and finite(out.yaw_rad)
                 and finite(sp[0]) and finite(sp[1]) and finite(ff[0])

@@ -18,7 +18,8 @@ from landing_planner.planner import DESCENT_PROFILES, PlannerParams
 
 #: Meaning of every PlannerParams field exposed as a ROS parameter (same name).
 PLANNER_DESCRIPTIONS: dict[str, str] = {
-    'max_xy_dist_m': 'accept a target only this close (m) to the landing area',
+    'max_xy_dist_m': 'accept a target only this close (m) to where the deck is predicted (the '
+                     'landing area before any fix)',
     'acceptance_radius_m': 'horizontally close (m) to the target: may descend (paper 4.2)',
     'acceptance_hold_s': 'stay within the acceptance radius this long (s) before descending',
     'acceptance_hysteresis': 'leave acceptance_radius x this → pause the descent and re-align',
@@ -57,7 +58,26 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'invalid_timeout_s': 'invalid vehicle/vertical state this long (s) → safe mode',
     'descent_profile': "'deck_relative' (paper) or 'constant_rate' (world-rate baseline)",
     'constant_rate_mps': "world descent rate (m/s) of the 'constant_rate' profile",
+    'timer_debounce_s': 'arrival/acceptance timers reset only after an excursion this long (s)',
+    'deck_velocity_filter_s': 'deck track: time constant (s) of the velocity it predicts with',
+    'track_timeout_s': 'deck track: a prediction older than this (s) is no track',
+    'deck_yaw_offset_rad': 'heading (rad) to hold relative to the deck heading (telemetry)',
+    'yaw_rate_max_radps': 'yaw alignment: rate limit (rad/s) of the heading command',
+    'yaw_tolerance_rad': 'yaw alignment: descend only within this (rad) of the deck heading',
+    'timed_touchdown': 'FINAL holds a gear clearance and commits into a predicted window',
+    'commit_clearance_m': 'FINAL hold: gear this far (m) above the pad before the commit',
+    'commit_timeout_s': 'FINAL hold at most this long (s), then the final descent as before',
+    'commit_check_s': 'look for a commit window every this often (s) while holding',
+    'commit_follow_lag_s': 'commit window: lag (s) of the vehicle following the deck',
+    'commit_leash_m': 'final_leash_m (m) of a descent committed into a window',
+    'commit_plan_speed_mps': 'commit window: closing speed (m/s) the final descent achieves',
+    'max_go_arounds': 'go-arounds (deck broke the prediction) per landing, at most',
+    'predictor_warmup_updates': 'deck predictor: model updates before its paths are scored',
+    'predictor_min_calibration': 'deck predictor: scored paths before it is ready',
 }
+
+_INT_PARAMS = ('max_searches', 'max_go_arounds', 'predictor_warmup_updates',
+               'predictor_min_calibration')
 
 #: ROS parameter name → HorizontalParams field, with its meaning.
 HORIZONTAL_FIELDS: dict[str, tuple[str, str]] = {
@@ -106,9 +126,13 @@ def _planner_specs() -> list[ParamSpec]:
                                         'README)')
         if f.name == 'descent_profile':
             specs.append(one_of(f.name, default, DESCENT_PROFILES, text))
-        elif f.name == 'max_searches':
+        elif f.name in _INT_PARAMS:
             specs.append(ParamSpec(f.name, int(default), text, lambda v: v >= 0,
                                    'must be >= 0'))
+        elif f.name == 'timed_touchdown':
+            specs.append(ParamSpec(f.name, bool(default), text))
+        elif f.name == 'deck_yaw_offset_rad':
+            specs.append(ParamSpec(f.name, float(default), text))
         elif f.name == 'acceptance_hysteresis':
             specs.append(ParamSpec(f.name, float(default), text, lambda v: v >= 1.0,
                                    'must be >= 1'))

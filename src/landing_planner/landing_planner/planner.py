@@ -17,6 +17,9 @@ import math
 from typing import TYPE_CHECKING
 
 from deckland_common.contract import (
+    DECK_SOURCE_NONE,
+    DECK_SOURCE_PREDICTION,
+    DECK_SOURCE_TELEMETRY,
     VERTICAL_RELATIVE,
     VERTICAL_WORLD_RATE,
     Mode,
@@ -24,6 +27,22 @@ from deckland_common.contract import (
     VehicleState,
 )
 
+from landing_planner.commit_window import (
+    CommitParams,
+    CommitWindow,
+    DescentPlan,
+    MonitorParams,
+    PredictionMonitor,
+    find_window,
+)
+from landing_planner.deck_predictor import (
+    ChannelParams,
+    DeckPredictor,
+    DeckPredictorParams,
+    pad_normal_xy,
+    tilt_channel_params,
+)
+from landing_planner.deck_track import DeckTrack, DeckTrackParams, TrackPoint
 from landing_planner.reference import ReferenceGenerator, ReferenceLimits
 from landing_planner.search import SearchPattern
 
@@ -33,9 +52,14 @@ if TYPE_CHECKING:  # pragma: no cover - typing only
 __all__ = ['LandingPlanner', 'Mode', 'PlannerOutput', 'PlannerParams', 'VehicleState']
 
 DESCENT_PROFILES = ('deck_relative', 'constant_rate')
+_INT_FIELDS = ('max_searches', 'max_go_arounds', 'predictor_warmup_updates',
+               'predictor_min_calibration')
 _LANDING_MODES = (Mode.APPROACH, Mode.ALIGN, Mode.DESCEND, Mode.FINAL, Mode.SEARCH,
                   Mode.FALLBACK)
 _AIRBORNE_MODES = (*_LANDING_MODES, Mode.TAKEOFF, Mode.HOLD)
+_DECK_MODES = (Mode.ALIGN, Mode.DESCEND, Mode.FINAL)   # over the deck: align the heading
+_MOVING_MPS = 0.2     # a deck once tracked faster than this is "moving" (no Step 14 landing)
+_BEST_WAIT_S = 3.0     # FINAL hold past its timeout: wait this long at most for the best commit
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,6 +103,25 @@ class PlannerParams:
     invalid_timeout_s: float = 0.5      # invalid vertical/vehicle state → safe mode after
     descent_profile: str = 'deck_relative'
     constant_rate_mps: float = 0.5      # 'constant_rate' profile: world descent rate
+    # --- issue 13: a moving deck, yaw alignment, touchdown timed to the deck --------------
+    timer_debounce_s: float = 0.3       # arrival/acceptance timers reset only after an
+    #                                     excursion this long (one noisy sample does not)
+    deck_velocity_filter_s: float = 0.5  # DeckTrack: time constant of the predicted velocity
+    track_timeout_s: float = 60.0       # DeckTrack: a prediction older than this is no track
+    deck_yaw_offset_rad: float = 0.0    # heading to hold relative to the deck's (any value)
+    yaw_rate_max_radps: float = 0.5     # yaw alignment: rate limit of the heading command
+    yaw_tolerance_rad: float = 0.1      # ... DESCEND only within this of the deck heading
+    timed_touchdown: bool = True        # FINAL: hold, commit into a predicted window
+    commit_clearance_m: float = 0.12    # FINAL hold: gear this far above the pad
+    commit_timeout_s: float = 15.0      # FINAL hold at most this long, then descend as before
+    commit_leash_m: float = 0.02        # final_leash_m of a descent committed into a window
+    commit_check_s: float = 0.1         # find_window every this often while holding
+    commit_follow_lag_s: float = 0.25   # DescentPlan.follow_lag_s (vehicle + estimator lag)
+    commit_plan_speed_mps: float = 0.065  # DescentPlan closing speed: what the leashed
+    #                                     descent achieves (README), not final_speed_mps
+    max_go_arounds: int = 2             # deck broke the prediction: at most this many
+    predictor_warmup_updates: int = 20  # ChannelParams.warmup_updates of the heave channel
+    predictor_min_calibration: int = 25  # ChannelParams.min_calibration (scored paths)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -93,9 +136,17 @@ class PlannerParams:
                                    for v in value)):
                     raise ValueError('PlannerParams.landing_area_m must be two finite '
                                      f'numbers (x, y), got {value!r}')
-            elif f.name == 'max_searches':
+            elif f.name in _INT_FIELDS:
                 if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                    raise ValueError(f'PlannerParams.max_searches must be an int >= 0, '
+                    raise ValueError(f'PlannerParams.{f.name} must be an int >= 0, '
+                                     f'got {value!r}')
+            elif f.name == 'timed_touchdown':
+                if not isinstance(value, bool):
+                    raise ValueError(f'PlannerParams.timed_touchdown must be a bool, '
+                                     f'got {value!r}')
+            elif f.name == 'deck_yaw_offset_rad':
+                if not _finite(value) or isinstance(value, bool):
+                    raise ValueError(f'PlannerParams.deck_yaw_offset_rad must be finite, '
                                      f'got {value!r}')
             elif (isinstance(value, bool) or not isinstance(value, (int, float))
                   or not math.isfinite(value) or value <= 0.0):
@@ -110,10 +161,16 @@ class PlannerParams:
         if self.landed_press_m >= self.final_press_m:
             raise ValueError('PlannerParams.landed_press_m must be < final_press_m (the '
                              'reference must be able to press that far below contact)')
-        if self.final_leash_m >= self.landed_press_m:
-            raise ValueError('PlannerParams.final_leash_m must be < landed_press_m')
+        if max(self.final_leash_m, self.commit_leash_m) >= self.landed_press_m:
+            raise ValueError('PlannerParams.final_leash_m and commit_leash_m must be < '
+                             'landed_press_m')
         if self.max_xy_dist_m < self.acceptance_radius_m:
             raise ValueError('PlannerParams.max_xy_dist_m must be >= acceptance_radius_m')
+        if not (self.gear_height_m + self.commit_clearance_m < self.final_approach_height_m):
+            raise ValueError('PlannerParams.commit_clearance_m must put the hold below the '
+                             'final-approach height')
+        if self.predictor_min_calibration < 1:
+            raise ValueError('PlannerParams.predictor_min_calibration must be >= 1')
 
 
 class _Path:
@@ -148,6 +205,11 @@ class _Path:
         return self._gen.z_m >= self._len - 1e-6 and abs(self._gen.z_dot_mps) < 1e-6
 
 
+def _wrap(a: float) -> float:
+    """Angle wrapped to (-π, π]."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
 def _finite(*values: float) -> bool:
     """True if every value is a finite number (False for non-numbers).
 
@@ -174,6 +236,12 @@ class _Latch:
     t_landed_cond: float | None = None
     t_invalid: float | None = None
     over_deck: bool = False      # FALLBACK entered over the tracked deck: keep following it
+    follow_track: bool = False   # HOLD over the predicted track (a moving deck)
+    go_around: bool = False      # ALIGN after a go-around: climb back before descending
+    t_excursion: float | None = None   # debounce: since when the timer's condition is off
+    committed: bool = False      # FINAL: the descent is committed (else holding)
+    windowed: bool = False       # ... into a predicted window (the looser commit leash)
+    t_check: float = -math.inf   # FINAL: last find_window
 
 
 class _Tick:
@@ -217,6 +285,7 @@ class LandingPlanner:
         self._world_floor_m = 0.0
         self._path = _Path(ReferenceLimits(p.approach_accel_mps2, p.approach_jerk_mps3))
         self._path_active = False
+        self._path_rel = False      # the path is flown relative to the predicted deck
         self._sp: tuple[float, float] | None = None
         self._ff = (0.0, 0.0)
         self._yaw: float | None = None
@@ -232,6 +301,19 @@ class LandingPlanner:
         self._epoch: int | None = None
         self._l = _Latch()
         self._last_out: PlannerOutput | None = None
+        # issue 13: the deck as a moving target, its vertical prediction, the go-arounds
+        self._track = DeckTrack(p.landing_area_m, DeckTrackParams(
+            velocity_filter_s=p.deck_velocity_filter_s, max_prediction_s=p.track_timeout_s))
+        self._tp: TrackPoint = self._track.at(0.0)
+        heave = ChannelParams(warmup_updates=p.predictor_warmup_updates,
+                              min_calibration=p.predictor_min_calibration)
+        self.predictor = DeckPredictor(DeckPredictorParams(heave=heave,
+                                                           tilt=tilt_channel_params()))
+        self._commit = CommitParams()
+        self._monitor = PredictionMonitor(MonitorParams())
+        self.go_arounds = 0
+        self._accel_ff = (0.0, 0.0)
+        self.track_source = self._tp.source
 
     @property
     def searches(self) -> int:
@@ -248,6 +330,7 @@ class LandingPlanner:
         if self.mode is Mode.LANDED:
             return False, 'landed: take off first'
         self._search.reset()
+        self.go_arounds = 0
         self._yaw = None            # latch the current heading at the next step
         self._switch_to(Mode.APPROACH, t_s, 'start_landing requested (Step 1)', entry_now=False)
         return True, 'landing started'
@@ -287,6 +370,10 @@ class LandingPlanner:
         veh_ok = self._read_vehicle(vehicle)
         target_ok, rel = self._read_target(t_s, apron)
         vert_ok, closing = self._read_vertical(apron)
+        self.track_source = self._track.update(t_s, apron, target_ok)
+        self._tp = self._track.at(t_s)
+        self._feed_predictor(t_s, apron, vert_ok)
+        self._accel_ff = (0.0, 0.0)
 
         if self._pos is None:   # nothing known about the vehicle yet
             return self._emit(t_s, self._placeholder_height(), 0.0, 0.0, True)
@@ -310,6 +397,8 @@ class LandingPlanner:
         self._update_frame()
         state = self._state
         state.horizontal(self, tk)
+        if self.mode in _DECK_MODES:
+            self._align_yaw(dt_s)
         z_target, z_speed = self._stop_here() if paused else state.vertical(self, tk)
         if self._zref_ok:
             self._zref.step(z_target, z_speed, dt_s)
@@ -375,11 +464,12 @@ class LandingPlanner:
             self.rejected['nan'] += 1
             return False, (0.0, 0.0)
         self._rel = (rp[0], rp[1])
-        lx, ly = self.params.landing_area_m
-        if math.hypot(ap[0] - lx, ap[1] - ly) > self.params.max_xy_dist_m:
-            # like ArduPilot PLND_XY_DIST_MAX. Kept for a followed track too: it also guards
-            # against a diverging estimate (sea_state_4 seed 100002 chased a track 3-5 m off
-            # without it); a FALLBACK right over the gated beacon still follows it (_rel)
+        if math.hypot(*self._gate_offset(t_s, ap)) > self.params.max_xy_dist_m:
+            # like ArduPilot PLND_XY_DIST_MAX, measured from where the deck is predicted to
+            # be (DeckTrack), not from a world-fixed area a moving deck can leave. Kept for a
+            # followed track too: it also guards against a diverging estimate (sea_state_4
+            # seed 100002 chased a track 3-5 m off without it); a FALLBACK right over the
+            # gated beacon still follows it (_rel)
             return False, (0.0, 0.0)
         var = apron.rel_position_var_m2
         sig = self.params.max_target_sigma_m
@@ -388,6 +478,63 @@ class LandingPlanner:
         self._t_target_ok = t_s
         self._last_target = (ap[0], ap[1])
         return True, (rp[0], rp[1])
+
+    def _gate_offset(self, t_s: float, ap: tuple[float, float]) -> tuple[float, float]:
+        """The target minus where the deck is predicted to be (before this step's fix)."""
+        q = self._track.at(t_s).position_m
+        return ap[0] - q[0], ap[1] - q[1]
+
+    def _feed_predictor(self, t_s: float, apron: ApronState, vert_ok: bool) -> None:
+        """The deck's vertical motion (and tilt, with telemetry) into the predictor."""
+        v = apron.vertical
+        if vert_ok:
+            self.predictor.on_surface(t_s, v.surface_height_m, v.surface_epoch,
+                                      v.last_rebase_m if _finite(v.last_rebase_m) else 0.0)
+        if apron.deck_attitude_valid and apron.source == DECK_SOURCE_TELEMETRY:
+            r = apron.deck_rpy_rad
+            if _finite(r[0], r[1], r[2]):
+                self.predictor.on_tilt(t_s, *pad_normal_xy(r[0], r[1], r[2]))
+
+    def _deck_yaw_target(self) -> float | None:
+        """The heading to hold over the deck: its heading + ``deck_yaw_offset_rad``."""
+        h = self._tp.heading_rad
+        return None if h is None else h + self.params.deck_yaw_offset_rad
+
+    def _align_yaw(self, dt_s: float) -> None:
+        """Yaw alignment (issue 13, part 3): turn the held heading toward the deck's at
+        ``yaw_rate_max_radps``; without a deck heading the heading stays as latched."""
+        target = self._deck_yaw_target()
+        if target is None or self._yaw is None:
+            return
+        err = _wrap(target - self._yaw)
+        lim = self.params.yaw_rate_max_radps * dt_s
+        self._yaw = _wrap(self._yaw + max(-lim, min(lim, err)))
+
+    def _yaw_aligned(self, vehicle_yaw: float) -> bool:
+        """DESCEND only with the vehicle within ``yaw_tolerance_rad`` of the target heading
+        (always true without a deck heading)."""
+        target = self._deck_yaw_target()
+        if target is None:
+            return True
+        return abs(_wrap(target - vehicle_yaw)) <= self.params.yaw_tolerance_rad
+
+    def _debounced(self, ok: bool, t_s: float, dt_s: float,
+                   start: float | None) -> float | None:
+        """A timer started at ``start`` that survives excursions (``ok`` False, each sample
+        lasting ``dt_s``) shorter than ``timer_debounce_s`` (issue 13, part 5); returns the
+        new start (None = reset)."""
+        latch = self._l
+        if ok:
+            latch.t_excursion = None
+            return start if start is not None else t_s
+        if start is None:
+            return None
+        if latch.t_excursion is None:
+            latch.t_excursion = t_s
+        if t_s + dt_s - latch.t_excursion >= self.params.timer_debounce_s - 1e-9:
+            latch.t_excursion = None
+            return None
+        return start
 
     def _read_vertical(self, apron: ApronState) -> tuple[bool, float]:
         v = apron.vertical
@@ -415,7 +562,8 @@ class LandingPlanner:
 
     # --- switching -----------------------------------------------------------------------
     def _switch_to(self, mode: Mode, t_s: float, reason: str, over_deck: bool = False,
-                   entry_now: bool = True) -> None:
+                   entry_now: bool = True, follow_track: bool = False,
+                   go_around: bool = False) -> None:
         """Enter ``mode`` for ``reason`` (logged in every output): new bookkeeping (the
         invalid-input timer carries over), then the mode's entry actions (``entry_now=False``
         for a service call: at the start of the next step)."""
@@ -423,7 +571,8 @@ class LandingPlanner:
         self.mode = mode
         self._state = _STATES[mode]
         self.reason = reason
-        self._l = _Latch(t_mode=t, t_invalid=self._l.t_invalid, over_deck=over_deck)
+        self._l = _Latch(t_mode=t, t_invalid=self._l.t_invalid, over_deck=over_deck,
+                         follow_track=follow_track, go_around=go_around)
         if entry_now:
             self._run_entry()
 
@@ -443,6 +592,13 @@ class LandingPlanner:
         if search.retry():
             self._switch_to(Mode.SEARCH, t_s, f'{why}: search attempt {search.attempts} '
                             f'of {search.max_attempts} (Steps 11-12)')
+        elif (self._tp.moving or self._track.max_speed_mps > _MOVING_MPS) \
+                and not self._over_deck():
+            # Step 14 "land where it is" would land on the sea beside a moving deck
+            self._switch_to(Mode.HOLD, t_s, f'{why}: {search.attempts} search attempts used '
+                            'on a moving deck: holding over its predicted track at the '
+                            'search height (Step 14 refused: no descent off the deck)',
+                            follow_track=True)
         else:
             self._switch_to(Mode.FALLBACK, t_s, f'{why}: {search.attempts} search attempts '
                             'used, landing where it is (Step 14)', over_deck=self._over_deck())
@@ -453,6 +609,116 @@ class LandingPlanner:
         p = self.params
         return (self._rel is not None and not self._ambiguous
                 and math.hypot(*self._rel) <= p.acceptance_radius_m * p.acceptance_hysteresis)
+
+    # --- touchdown timed to the deck (issue 13, part 4) -----------------------------------
+    def _timing(self) -> bool:
+        """FINAL holds and waits for a window (not on the deck-blind constant-rate profile)."""
+        return self.params.timed_touchdown and self.params.descent_profile == 'deck_relative'
+
+    def _commit_now(self, t_s: float, reason: str, arm: bool, windowed: bool) -> None:
+        """Start the final descent; ``arm``: watch the prediction (go-around);
+        ``windowed``: into a window (the commit leash, re-planned on the way down)."""
+        self._l.committed = True
+        self._l.windowed = windowed
+        self.reason = reason
+        if not (arm and self._monitor.arm(self.predictor)):
+            self._monitor.disarm()
+
+    def _try_commit(self, tk: _Tick) -> None:
+        """FINAL hold: commit when a descent started now lands inside a predicted window;
+        after ``commit_timeout_s`` descend as before (Step 10)."""
+        p = self.params
+        latch = self._l
+        t = tk.t_s
+        late = t - latch.t_mode >= p.commit_timeout_s
+        # past the timeout with a ready prediction: the best commit it offers within one
+        # horizon more (find_window's best_commit_s), then, bounded, as before
+        if late and (not self.predictor.ready
+                     or t - latch.t_mode >= p.commit_timeout_s + _BEST_WAIT_S):
+            why = 'window' if self.predictor.ready else 'ready prediction'
+            self._commit_now(t, f'no commit {why} within {t - latch.t_mode:.1f} s of '
+                             'holding: final descent as before (Step 10)', False, False)
+            return
+        if t - latch.t_check < p.commit_check_s or not self.predictor.ready:
+            return
+        h = self._height
+        if not (tk.vert_ok and tk.veh_ok) or h is None or not self._zref_ok:
+            return
+        hold = p.gear_height_m + p.commit_clearance_m
+        if (abs(self._zref.z_m - hold) > 0.02
+                or abs(self._zref.z_dot_mps) > p.final_speed_mps + 0.01):
+            return     # still settling onto the hold height
+        latch.t_check = t
+        w = self._window(t, tk.vehicle, h)
+        if w.commit_now:
+            self._commit_now(t, f'commit window open: contact in {w.now_contact_s - t:.1f} s '
+                             f'at <= {w.now_speed_hi_mps:.2f} m/s (Step 10)', True, True)
+        elif late and w.best_commit_s <= t + 0.5 * p.commit_check_s:
+            self._commit_now(t, f'no window within {p.commit_timeout_s:.1f} s: the best '
+                             f'commit offered (contact at <= {w.best_speed_hi_mps:.2f} m/s, '
+                             'Step 10)', True, False)
+
+    def _window(self, t_s: float, v: VehicleState, h: float) -> CommitWindow:
+        """The commit window for the final descent flown from height ``h`` now."""
+        p = self.params
+        nx, ny = pad_normal_xy(v.roll_rad, v.pitch_rad, v.yaw_rad)
+        plan = DescentPlan(height_m=max(h - p.gear_height_m, 0.01),
+                           closing_speed_mps=p.commit_plan_speed_mps,
+                           follow_lag_s=p.commit_follow_lag_s,
+                           vehicle_vz_mps=float(v.velocity_mps[2]),
+                           vehicle_normal_x=nx, vehicle_normal_y=ny)
+        return find_window(t_s, self.predictor.snapshot(), plan, self._commit)
+
+    def _recheck_commit(self, tk: _Tick) -> None:
+        """A windowed descent that fell behind its plan (the vehicle descends slower than the
+        plan's closing speed) can carry the contact into a reversal: every
+        ``commit_check_s`` the descent is re-planned from where it is; when continuing now is
+        no longer inside a window it stops and holds again (FINAL hold), above the landed
+        band only."""
+        p = self.params
+        latch = self._l
+        h = self._height
+        if (not latch.windowed or h is None or not (tk.vert_ok and tk.veh_ok)
+                or h - p.gear_height_m <= p.landed_height_tol_m
+                or tk.t_s - latch.t_check < p.commit_check_s or not self.predictor.ready):
+            return
+        latch.t_check = tk.t_s
+        w = self._window(tk.t_s, tk.vehicle, h)
+        if (w.commit_now or not math.isfinite(w.now_speed_hi_mps)
+                or w.now_speed_hi_mps <= self._commit.max_normal_speed_mps + 0.03):
+            return     # (hysteresis against chattering; no contact found: the monitor's)
+        latch.committed = latch.windowed = False
+        self._monitor.disarm()
+        self.reason = (f'the committed descent left its window (contact now at <= '
+                       f'{w.now_speed_hi_mps:.2f} m/s): holding again (Step 10)')
+
+    def _watch_commit(self, tk: _Tick) -> None:
+        """Committed: the deck broke the prediction → go around (climb over the pad, keep
+        tracking, retry), at most ``max_go_arounds`` times and not in the landed band."""
+        mon = self._monitor
+        if not mon.armed:
+            return
+        broken = mon.update(tk.t_s, self.predictor)
+        if not broken:
+            self._recheck_commit(tk)
+            if not self._l.committed:
+                return
+        if mon.expired and not broken:
+            mon.disarm()
+            return
+        if not broken:
+            return
+        p = self.params
+        h = self._height
+        mon_reason, worst = mon.reason, mon.worst_sigma
+        mon.disarm()
+        if (self.go_arounds < p.max_go_arounds and h is not None
+                and h - p.gear_height_m > p.landed_height_tol_m):
+            self.go_arounds += 1
+            self._switch_to(Mode.ALIGN, tk.t_s, f'deck broke the prediction ({mon_reason}, '
+                            f'{worst:.1f} sigma): go around {self.go_arounds} of '
+                            f'{p.max_go_arounds} (climb over the pad, keep tracking, retry)',
+                            go_around=True)
 
     def _check_landed(self, tk: _Tick) -> None:
         """FINAL, FALLBACK: Step 15 → Step 16."""
@@ -534,12 +800,17 @@ class LandingPlanner:
                 or self.mode not in (Mode.FINAL, Mode.FALLBACK) or h > p.final_approach_height_m):
             self._leash_taken_m = 0.0
             return
+        # a descent committed into a window (no reversal predicted before the contact, the
+        # catch-up case) runs on a looser leash: with 5 mm the vehicle follows ż_d at ~0.03
+        # instead of 0.08 m/s and lands seconds after the window it was committed into
+        leash = p.commit_leash_m if (self._l.windowed and self.mode is Mode.FINAL) \
+            else p.final_leash_m
         in_band = h - p.gear_height_m <= p.landed_height_tol_m
         if not in_band:
             self._leash_taken_m = 0.0
-        elif self._leash_taken_m >= p.landed_press_m - p.final_leash_m:
+        elif self._leash_taken_m >= p.landed_press_m - leash:
             return      # let go: the reference presses on toward its target
-        low = h - p.final_leash_m
+        low = h - leash
         if self._zref.z_m < low:
             if in_band:
                 self._leash_taken_m += low - self._zref.z_m
@@ -571,21 +842,47 @@ class LandingPlanner:
         self._ff = (0.0, 0.0)
 
     def _fly_path(self, speed_mps: float, dt_s: float) -> bool:
-        """Horizontal: along the active path (False, position held, when none is active)."""
+        """Horizontal: along the active path (False, position held, when none is active).
+
+        A path started ``relative`` is flown in the frame of the predicted deck: setpoint =
+        predicted pad + path, feed-forward = deck velocity + path rate (and the deck's
+        acceleration): an intercept with velocity matching, not a chase of where it was.
+        """
         if not self._path_active:
             self._hold_position()
             return False
-        self._sp, self._ff = self._path.step(speed_mps, dt_s)
+        sp, ff = self._path.step(speed_mps, dt_s)
+        if self._path_rel:
+            o = self._tp
+            sp = (sp[0] + o.position_m[0], sp[1] + o.position_m[1])
+            ff = (ff[0] + o.velocity_mps[0], ff[1] + o.velocity_mps[1])
+            self._accel_ff = o.accel_mps2
+        self._sp, self._ff = sp, ff
         return True
 
     def _track_deck(self, apron: ApronState, seen: bool, dt_s: float) -> None:
         """Horizontal: slew toward the target, moving with the deck and closing the gap at
-        ``align_speed_mps``; not seen: hold the last setpoint (FINAL continues blind)."""
-        if not seen:
-            self._ff = (0.0, 0.0)
-            return
-        ax, ay = apron.apron_position_m
-        fx, fy = apron.apron_velocity_mps
+        ``align_speed_mps``, its velocity and acceleration fed forward; not seen: move on
+        with the predicted deck (FINAL continues blind; a deck at rest: the last setpoint)."""
+        if seen:
+            ax, ay = apron.apron_position_m
+            fx, fy = apron.apron_velocity_mps
+            acc = apron.apron_accel_mps2
+            if _finite(acc[0], acc[1]):
+                self._accel_ff = (float(acc[0]), float(acc[1]))
+        else:
+            o = self._tp
+            if o.source == DECK_SOURCE_NONE:
+                self._ff = (0.0, 0.0)
+                return
+            (ax, ay), (fx, fy) = o.position_m, o.velocity_mps
+            self._accel_ff = o.accel_mps2
+            if o.source == DECK_SOURCE_PREDICTION:
+                # a prediction moves the setpoint with the deck, it does not pull it
+                sx, sy = self._sp if self._sp is not None else (ax, ay)
+                self._sp = (sx + fx * dt_s, sy + fy * dt_s)
+                self._ff = (fx, fy)
+                return
         sx, sy = self._sp if self._sp is not None else (ax, ay)   # (set by step())
         px, py = sx + fx * dt_s, sy + fy * dt_s
         ex, ey = ax - px, ay - py
@@ -596,12 +893,20 @@ class LandingPlanner:
         self._sp = (px + ex, py + ey)
         self._ff = (fx, fy)
 
-    def _start_path(self, goal: tuple[float, float]) -> None:
+    def _start_path(self, goal: tuple[float, float], relative: bool = False) -> None:
+        """A straight path to ``goal`` from the setpoint; ``relative``: in the frame of the
+        predicted deck (goal relative to the pad)."""
         start = self._sp
         if start is None:   # (step() sets the setpoint before any entry action runs)
             start = (self._pos[0], self._pos[1]) if self._pos is not None else goal
-        self._path.start(start, (float(goal[0]), float(goal[1])), self._ff)
+        v0 = self._ff
+        if relative:
+            o = self._tp
+            start = (start[0] - o.position_m[0], start[1] - o.position_m[1])
+            v0 = (v0[0] - o.velocity_mps[0], v0[1] - o.velocity_mps[1])
+        self._path.start(start, (float(goal[0]), float(goal[1])), v0)
         self._path_active = True
+        self._path_rel = relative
 
     # --- output --------------------------------------------------------------------------
     def _placeholder_height(self) -> float:
@@ -618,7 +923,8 @@ class LandingPlanner:
             t_s=t_s, mode=self.mode, setpoint_m=(float(sp[0]), float(sp[1])),
             velocity_ff_mps=self._ff, yaw_rad=self._yaw_out(),
             z_d_m=z, z_d_dot_mps=zd, z_d_ddot_mps2=zdd, thrust_enabled=thrust,
-            searches=self.searches, reason=self.reason, vertical_mode=self._vframe)
+            searches=self.searches, reason=self.reason, vertical_mode=self._vframe,
+            accel_ff_mps2=self._accel_ff)
         self._last_out = out
         return out
 
@@ -712,7 +1018,7 @@ class _Approach(_State):
     """APPROACH (Step 2): the straight line to the landing area at the approach height."""
 
     def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
-        pl._start_path(pl.params.landing_area_m)
+        pl._start_path((0.0, 0.0), relative=True)   # to the predicted deck (the area at rest)
 
     def run(self, pl: LandingPlanner, tk: _Tick) -> None:
         if tk.target_ok:
@@ -720,15 +1026,14 @@ class _Approach(_State):
             return
         p = pl.params
         latch = pl._l
-        lx, ly = p.landing_area_m
+        lx, ly = pl._tp.position_m
         pos = pl._pos
         arrived = (pl._path.done and pos is not None
                    and math.hypot(pos[0] - lx, pos[1] - ly) <= p.arrival_radius_m)
-        if not arrived:
-            latch.t_arrived = None
-        elif latch.t_arrived is None:
-            latch.t_arrived = tk.t_s
-        elif tk.t_s - latch.t_arrived >= p.arrival_wait_s:
+        # debounced: one noisy position sample outside the radius does not restart it
+        latch.t_arrived = pl._debounced(arrived, tk.t_s, tk.dt_s, latch.t_arrived)
+        if (arrived and latch.t_arrived is not None
+                and tk.t_s - latch.t_arrived >= p.arrival_wait_s):
             pl._search_or_fallback(tk.t_s, 'no target at the landing area (Step 3)')
 
     def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
@@ -752,14 +1057,18 @@ class _Align(_State):
             return
         latch = pl._l
         dist = math.hypot(tk.rel[0], tk.rel[1])
-        if tk.target_ok and dist <= p.acceptance_radius_m and not pl._ambiguous:
-            if latch.t_in_radius is None:
-                latch.t_in_radius = tk.t_s
-            if tk.t_s - latch.t_in_radius >= p.acceptance_hold_s:
-                pl._switch_to(Mode.DESCEND, tk.t_s, f'horizontally close ({dist:.2f} m) for '
-                              f'{p.acceptance_hold_s:.1f} s (Step 5 → Step 6)')
-        else:
-            latch.t_in_radius = None
+        close = tk.target_ok and dist <= p.acceptance_radius_m and not pl._ambiguous
+        # debounced (issue 13, part 5): a single noisy sample does not restart the hold
+        latch.t_in_radius = pl._debounced(close, tk.t_s, tk.dt_s, latch.t_in_radius)
+        if (close and latch.t_in_radius is not None
+                and tk.t_s - latch.t_in_radius >= p.acceptance_hold_s):
+            if not (tk.veh_ok and pl._yaw_aligned(tk.vehicle.yaw_rad)):
+                return    # yaw alignment: turning to the deck's heading first
+            h, hold = pl._height, latch.hold_height_m
+            if latch.go_around and h is not None and hold is not None and h < hold - 0.05:
+                return    # a go-around climbs back to the hover height over the pad first
+            pl._switch_to(Mode.DESCEND, tk.t_s, f'horizontally close ({dist:.2f} m) for '
+                          f'{p.acceptance_hold_s:.1f} s (Step 5 → Step 6)')
 
     def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
         pl._track_deck(tk.apron, tk.target_ok, tk.dt_s)
@@ -800,10 +1109,25 @@ class _Descend(_State):
 
 
 class _Final(_State):
-    """FINAL (Steps 9-10): the final descent relative to the deck, leashed, blind if need be."""
+    """FINAL (Steps 9-10): the final descent relative to the deck, leashed, blind if need be.
+
+    Timed (issue 13, part 4): first hold ``commit_clearance_m`` of gear clearance over the
+    pad, commit into a predicted window (``find_window``), watch the prediction
+    (``PredictionMonitor``) and go around (→ ALIGN) when the deck breaks it.
+    """
+
+    def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
+        pl._l.committed = not pl._timing()
+        pl._monitor.disarm()
 
     def run(self, pl: LandingPlanner, tk: _Tick) -> None:
         pl._check_landed(tk)
+        if pl.mode is not Mode.FINAL:
+            return
+        if pl._l.committed:
+            pl._watch_commit(tk)
+        else:
+            pl._try_commit(tk)
 
     def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
         pl._track_deck(tk.apron, tk.target_ok, tk.dt_s)
@@ -812,6 +1136,8 @@ class _Final(_State):
         if pl._vframe == VERTICAL_WORLD_RATE:
             return pl._world_ramp()
         p = pl.params
+        if not pl._l.committed:
+            return p.gear_height_m + p.commit_clearance_m, p.final_speed_mps
         return p.gear_height_m - p.final_press_m, p.final_speed_mps
 
 
@@ -819,8 +1145,8 @@ class _Search(_State):
     """SEARCH (Steps 11-13): at the search height, fly the pattern until the target shows."""
 
     def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
-        lx, ly = pl.params.landing_area_m
-        pl._start_path(pl._search.begin(pl._last_target or (lx, ly)))
+        # around the predicted track: the pattern is flown in the predicted deck's frame
+        pl._start_path(pl._search.begin((0.0, 0.0)), relative=True)
 
     def run(self, pl: LandingPlanner, tk: _Tick) -> None:
         if tk.target_ok:
@@ -834,7 +1160,7 @@ class _Search(_State):
         if pl._fly_path(pl.params.search_speed_mps, tk.dt_s) and pl._path.done:
             goal = pl._search.next_goal(tk.t_s)
             if goal is not None:
-                pl._start_path(goal)
+                pl._start_path(goal, relative=True)
 
     def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
         return pl.params.search_height_m, pl.params.vertical_speed_mps
@@ -864,12 +1190,22 @@ class _Fallback(_State):
 
 
 class _Hold(_State):
-    """HOLD (abort, invalid inputs, takeoff complete): hover at the approach height or above."""
+    """HOLD (abort, invalid inputs, takeoff complete): hover at the approach height or above;
+    after the searches on a moving deck: over the predicted track, at the search height."""
 
     def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
         pl._l.hold_xy = here
-        pl._l.hold_height_m = max(pl._stop_z(), pl.params.approach_height_m)
+        base = (pl.params.search_height_m if pl._l.follow_track
+                else pl.params.approach_height_m)
+        pl._l.hold_height_m = max(pl._stop_z(), base)
         pl._path_active = False
+
+    def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
+        if pl._l.follow_track:
+            o = pl._tp
+            pl._sp, pl._ff, pl._accel_ff = o.position_m, o.velocity_mps, o.accel_mps2
+        else:
+            pl._hold_position()
 
 
 class _Landed(_State):
