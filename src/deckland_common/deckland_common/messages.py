@@ -180,6 +180,7 @@ def fill_planner_reference(msg: Any, out: PlannerOutput, stamp_s: float,
     msg.vertical_frame = vertical_frame_code(out.vertical_mode)
     msg.setpoint_m = out.setpoint_m
     msg.velocity_ff_mps = out.velocity_ff_mps
+    msg.accel_ff_mps2 = out.accel_ff_mps2
     msg.yaw_rad = out.yaw_rad
     msg.z_d_m = out.z_d_m
     msg.z_d_dot_mps = out.z_d_dot_mps
