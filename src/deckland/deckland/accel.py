@@ -65,6 +65,7 @@ COMPILED_MODULES = (
     'deck_simulator.vehicle',
     'deck_simulator.world',
     'apron_estimator.camera',
+    'apron_estimator.deck',
     'apron_estimator.estimator',
     'apron_estimator.horizontal',
     'apron_estimator.inputs',
