@@ -89,8 +89,8 @@ PARAMS = [
     ParamSpec('truth_rate_hz', 50.0, 'rate of sim/truth/vehicle and sim/truth/apron',
               lambda v: 0.0 < v <= 400.0, 'must be in (0, 400]'),
     ParamSpec('tick_s', 0.01, 'wall-clock period of the simulation thread (absolute '
-              'deadlines); keep it a divisor of the sensor periods (10 ms: IMU 100 Hz, camera '
-              'and lidar 50 Hz) so telemetry leaves at a deadline',
+              'deadlines); keep it a divisor of the IMU period (10 ms at 100 Hz) so telemetry '
+              'leaves at a deadline',
               lambda v: 0.001 <= v <= 0.05, 'must be in [0.001, 0.05]'),
     one_of('offboard_loss_action', 'land', ('land', 'hold', 'return'),
            'emulated PX4 COM_OBL_RC_ACT after offboard setpoints stop for 1 s (COM_OF_LOSS_T; '
@@ -147,6 +147,14 @@ class DeckSimulatorNode(Node):
             scenario = load_scenario(p['scenario'])
         except ValueError as exc:
             raise ParameterError(f"parameter 'scenario': {exc}") from None
+        sp = scenario.sensors
+        for name, tp in (('imu', sp.imu.timing), ('attitude', sp.attitude.timing),
+                         ('local_position', sp.local_position.timing),
+                         ('lidar', sp.lidar.timing), ('true_camera', sp.true_camera.timing)):
+            if tp.rate_hz > p['physics_rate_hz']:   # a sensor clock samples the physics tick
+                raise ParameterError(
+                    f"parameter 'physics_rate_hz' = {p['physics_rate_hz']:g}: below the "
+                    f"scenario's sensors.{name}.timing.rate_hz = {tp.rate_hz:g}")
         if p['autopilot'] == 'px4-sitl':
             self.sim = self._px4_loop(scenario, p)
             local, target = None, f"PX4 SITL on TCP {p['px4_sim_port']}"

@@ -581,11 +581,13 @@ class World:
         self.inbox: dict[str, list] = {name: [] for name in SENSOR_STREAMS}
         self._next_sensor_s = -math.inf
         t = -lead
+        self.queued = frozenset(SENSOR_STREAMS)
         while t < 0.0:    # the start state, sampled on every clock until t = 0
             t = min(0.0, t + self.physics_dt_s)
             self._sample_sensors(t)
-        for box in self.inbox.values():
-            box.clear()
+        self.queued = frozenset()
+        for box in self.inbox.values():   # the stack, running already, has the last one
+            del box[:-1]
 
     def idle_to(self, t_s: float) -> None:
         """Move the clock to ``t_s`` without physics (the vehicle and its motion frozen, the
