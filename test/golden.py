@@ -49,7 +49,7 @@ DEFAULT_SCENARIO = 'paper'
 DEFAULT_SEED = 7
 #: ``apron_estimator`` ``clock`` of the recording (see :func:`record`)
 GOLDEN_ESTIMATOR_CLOCK = 'imu'
-MAX_BAG_BYTES = 2 * 1024 * 1024
+MAX_BAG_BYTES = 3 * 1024 * 1024
 
 #: Node-level parameters the replay mirrors (defaults of the nodes' PARAMS; the test
 #: ``test_golden_cores.py::test_node_defaults_mirrored`` checks them against the nodes).

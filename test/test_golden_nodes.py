@@ -12,10 +12,6 @@ pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
 BAG = Path(__file__).parent / 'fixtures' / 'golden_paper'
 
 
-@pytest.mark.xfail(reason='known regression (issue 15): since the nodes publish typed messages, '
-                   'replaying the pre-switch golden bag disagrees on the apron flags (77.7 %); '
-                   'a bag re-recorded in the new types does not pure-replay yet: to fix, then '
-                   'make golden', strict=False)
 def test_nodes_reproduce_the_recording(ros_context):
     context, executor = ros_context
     replayed, offset_s = golden.replay_nodes(BAG, context, executor)
