@@ -6,8 +6,10 @@ imports rclpy, so parallel CI jobs and developers' machines never see each other
 
 import os
 import random
+import socket
 import sys
 import threading
+import time
 
 # (under pytest-xdist each worker draws from its own half of 1-100: no two share a domain)
 os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 50) + 50 * (
@@ -66,6 +68,23 @@ def pytest_runtest_setup(item):
 
 
 _NICED: list[bool] = []
+
+
+def wait_for(pred, timeout_s=5.0):
+    """Poll ``pred()`` every 10 ms until it is true (True) or ``timeout_s`` passes (False)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def free_udp_port() -> int:
+    """A loopback UDP port free now (racy: for tests whose binder takes no socket)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
 
 
 def isolated_env(**extra: str) -> dict:

@@ -10,6 +10,7 @@ import math
 import threading
 import time
 
+from conftest import wait_for
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -22,15 +23,6 @@ R = 0.127
 def gamma(z_p):
     """(4) with ρ̄ = 1, written independently."""
     return 1.0 / (1.0 - (R / (4.0 * z_p)) ** 2)
-
-
-def wait_for(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 class Helper:

@@ -14,6 +14,7 @@ import math
 import threading
 import time
 
+from conftest import wait_for
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -21,15 +22,6 @@ pytestmark = pytest.mark.ros
 G = 9.81
 FX = 160.0 / math.tan(math.radians(30.0))   # default 60° full horizontal FOV, 320 px
 FY = 100.0 / math.tan(math.radians(23.5))   # default 47° full vertical FOV, 200 px
-
-
-def wait_for(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def quat(roll, pitch, yaw):

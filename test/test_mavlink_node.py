@@ -6,6 +6,7 @@ import socket
 import threading
 import time
 
+from conftest import wait_for
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -17,15 +18,6 @@ def free_udp_port():
     port = s.getsockname()[1]
     s.close()
     return port
-
-
-def wait_for(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 class EmulatorThread:

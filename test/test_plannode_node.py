@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 
+from conftest import wait_for
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -36,15 +37,6 @@ def ros(ros_context):
     for node in list(executor.get_nodes()):
         executor.remove_node(node)
     time.sleep(0.05)
-
-
-def wait_for(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def quat_to_euler(w, x, y, z):

@@ -8,28 +8,12 @@ import socket
 import time
 
 from apron_estimator.deck import telemetry_from_odometry
+from conftest import free_udp_port, wait_for
 from deck_simulator.ship_link import enu_to_geodetic
 from mavlink_bridge.ship import DeckOdom
 import pytest
 
 ORIGIN = (54.32, 10.15, 0.0)
-
-
-def free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(('127.0.0.1', 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
-def wait_for(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def test_odometry_encoding_round_trips_velocity_attitude_and_yaw_rate():

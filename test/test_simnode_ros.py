@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+from conftest import wait_for
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -19,15 +20,6 @@ def free_udp_port():
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(('127.0.0.1', 0))
         return s.getsockname()[1]
-
-
-def wait_for(pred, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def make_node(context, **params):

@@ -8,14 +8,13 @@ import ipaddress
 import pathlib
 import tokenize
 
+from deckland.mission_report import EXIT_CODES, failsafe_fields, summary_lines
 from deckland.orchestrator import load_graph
 from deckland.up import (
-    EXIT_CODES,
     UdpReservations,
     default_graph_path,
     graph_substitutions,
     prepare_record_dir,
-    summary_lines,
 )
 import pytest
 
@@ -208,3 +207,17 @@ def test_exit_codes_are_documented():
     readme = (ROOT / 'src' / 'deckland' / 'README-up.md').read_text()
     for code in EXIT_CODES:
         assert f'| {code} |' in readme
+
+
+def test_the_failsafe_is_the_first_mode_out_of_offboard_else_the_emulators_record():
+    modes = [{'t_s': 0.0, 'mode': 'POSCTL'}, {'t_s': 1.0, 'mode': 'OFFBOARD'},
+             {'t_s': 9.0, 'mode': 'AUTO.LAND'}, {'t_s': 12.0, 'mode': 'AUTO.RTL'}]
+    assert failsafe_fields(modes, {'failsafe_mode': 'return'}) == {'failsafe': 'AUTO.LAND'}
+    # the bridge died with the stack (composed node kill): the emulated PX4's record
+    seen = modes[:2]
+    assert failsafe_fields(seen, {'failsafe_mode': 'return'}) == {
+        'failsafe': 'AUTO.RTL', 'failsafe_source': 'simulator'}
+    assert failsafe_fields(seen, {'failsafe_mode': 'land'})['failsafe'] == 'AUTO.LAND'
+    # no failsafe flown, or a real firmware in the loop: nothing is made up
+    assert failsafe_fields(seen, {'failsafe_mode': ''}) == {}
+    assert failsafe_fields(seen, {'failsafe_mode': 'return', 'autopilot': 'px4-sitl'}) == {}

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 from importlib import resources
-import itertools
 import json
 import math
 import pathlib
@@ -35,30 +34,12 @@ import threading
 import time
 from typing import Any
 
+from deckland.mission_report import EXIT_CODES, failsafe_fields, summary_lines
 from deckland.orchestrator import Orchestrator, describe_status, load_graph, members
 
-EXIT_CODES = {
-    0: 'landed (simulation: on the deck, no crash; hardware: the planner reached LANDED)',
-    1: 'mission failed: no successful landing (missed/crashed/failsafe landing, timeout)',
-    2: 'usage or configuration error (bad scenario, graph, record directory, arguments)',
-    3: 'start-up failed (topics not flowing, a node died while starting)',
-    4: 'the landing could not be triggered (planner/start_landing refused or absent)',
-    130: 'interrupted by SIGINT (128 + 2)',
-    143: 'interrupted by SIGTERM (128 + 15)',
-}
 RUN_MARKERS = ('report.json', 'metadata.yaml')
 #: recorded hover before the landing trigger (s)
 PRE_TRIGGER_S = 1.0
-
-
-def free_udp_port() -> int:
-    """A loopback UDP port free *now*. Racy: until someone binds it, any process may take it
-    (an ephemeral bind, or a DDS participant's well-known port: ROS domains above ~100 put
-    those inside the ephemeral range). Only for a binder we cannot hand a socket to; the
-    graph's own sockets are :class:`UdpReservations`."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
 
 
 class UdpReservations:
@@ -303,68 +284,6 @@ def node_kill_faults(scenario) -> list[Any]:
     if scenario is None:
         return []
     return sorted((f for f in scenario.faults if f.type == 'node_kill'), key=lambda f: f.start_s)
-
-
-def _fmt(value: Any, unit: str, digits: int = 2) -> str:
-    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
-        return f'{value:.{digits}f} {unit}'
-    return 'n/a'
-
-
-def summary_lines(report: dict[str, Any], code: int, record: str | None) -> list[str]:
-    """The short end-of-run summary ``deckland up`` prints (also shown by ``make run``)."""
-    if report.get('interrupted'):
-        outcome = f'interrupted ({report["interrupted"]})'
-    elif report.get('success'):
-        outcome = f'landed ({report.get("reason", "success")})'
-    else:
-        outcome = f'no successful landing ({report.get("reason", "unknown")})'
-    if report.get('crash'):
-        outcome += ', CRASH'
-    elif report.get('safe') and not report.get('success'):
-        outcome += ', safe (no crash)'
-    if report.get('failsafe'):
-        outcome += f'; autopilot failsafe {report["failsafe"]}'
-    lines = [
-        '==== deckland up: summary ====',
-        f'outcome           {outcome}',
-        f'touchdown speed   {_fmt(report.get("touchdown_speed_mps"), "m/s")}',
-        f'horizontal error  {_fmt(report.get("horizontal_error_m"), "m", 3)}',
-        f'time to land      {_fmt(report.get("time_to_land_s"), "s", 1)}',
-    ]
-    if report.get('outcome'):     # the landing record (deck_simulator.outcome, campaigns')
-        lines.insert(2, f'class             {report["outcome"]}'
-                     + (' (settled)' if report.get('settled') else ''))
-    if report.get('contact_kind') not in (None, 'none'):
-        tilt = report.get('tilt_rad')
-        tilt_deg = math.degrees(tilt) if isinstance(tilt, int | float) else None
-        lines += [f'lateral speed     {_fmt(report.get("lateral_speed_mps"), "m/s")}',
-                  f'relative tilt     {_fmt(tilt_deg, "deg", 1)}',
-                  f'impacts, bounces  {report.get("impacts", 0)}, {report.get("bounces", 0)} '
-                  f'(fastest {_fmt(report.get("max_impact_speed_mps"), "m/s")}, highest hop '
-                  f'{_fmt(report.get("max_bounce_height_m"), "m", 3)})']
-    if report.get('autopilot_modes'):
-        lines.append('autopilot modes   ' + ' -> '.join(m['mode'] for m in
-                                                        report['autopilot_modes']))
-    for k in report.get('injected_faults', []):
-        lines.append(f'fault injected    node_kill {k["node"]} at {_fmt(k["at_s"], "s", 1)} '
-                     f'after the trigger')
-    for node, problem in report.get('device_problems', {}).items():
-        lines.append(f'device problem    {node}: {problem}')
-    for c in report.get('crashed_nodes', []):
-        lines.append(f'node exited       {c["node"]}: {c["description"]} ({c["action"]})')
-    bag = report.get('bag') or {}
-    if record and bag.get('not_started'):
-        lines.append(f'bag               not started: {bag["not_started"]}')
-        lines.append(f'report            {pathlib.Path(record) / "report.json"}')
-    elif record:
-        lines.append(f'bag               {record} ({bag.get("messages", "?")} messages, '
-                     f'{bag.get("topics", "?")} topics)')
-        lines.append(f'report            {pathlib.Path(record) / "report.json"}')
-    else:
-        lines.append('bag, report       not recorded (use --record DIR)')
-    lines.append(f'exit status       {code}: {EXIT_CODES.get(code, "")}')
-    return lines
 
 
 # --- the command ---------------------------------------------------------------------------
@@ -702,18 +621,7 @@ def _finish_report(report: dict[str, Any], args, hardware: bool, orch: Orchestra
     report['composed'] = bool(getattr(args, 'composed', False))
     if 'crash' in report:
         report['safe'] = not report['crash']
-    # the autopilot's offboard-loss action: the first mode it switched to out of OFFBOARD
-    seq = [m['mode'] for m in modes]
-    left = [b for a, b in itertools.pairwise(seq) if a == 'OFFBOARD' and b != 'OFFBOARD']
-    if left:
-        report['failsafe'] = left[0]
-    elif report.get('failsafe_mode') and 'autopilot' not in report:
-        # no mode seen leaving OFFBOARD: the bridge that reports them can be gone with the
-        # node killed (composed mode). The emulated autopilot's own record says which
-        # failsafe it flew (in PX4's name, as the bridge would have reported it)
-        from deck_simulator.px4_emulator import px4_name
-        report['failsafe'] = px4_name(report['failsafe_mode'])
-        report['failsafe_source'] = 'simulator'
+    report.update(failsafe_fields(modes, report))
     report['autopilot_modes'] = modes
     report['injected_faults'] = injected
     if orch.device_problems():

@@ -1,0 +1,102 @@
+"""What ``deckland up`` reports at the end of a run, from plain values (no rclpy).
+
+:func:`summary_lines` is the short summary it prints; :func:`failsafe_fields` names the
+autopilot's offboard-loss action from the modes the bridge saw, or from the emulated
+autopilot's own record when the bridge died with the node killed; :data:`EXIT_CODES` are the
+command's exit statuses (``src/deckland/README-up.md``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import pathlib
+from typing import Any
+
+EXIT_CODES = {
+    0: 'landed (simulation: on the deck, no crash; hardware: the planner reached LANDED)',
+    1: 'mission failed: no successful landing (missed/crashed/failsafe landing, timeout)',
+    2: 'usage or configuration error (bad scenario, graph, record directory, arguments)',
+    3: 'start-up failed (topics not flowing, a node died while starting)',
+    4: 'the landing could not be triggered (planner/start_landing refused or absent)',
+    130: 'interrupted by SIGINT (128 + 2)',
+    143: 'interrupted by SIGTERM (128 + 15)',
+}
+
+
+def failsafe_fields(modes: list[dict[str, Any]], report: dict[str, Any]) -> dict[str, str]:
+    """``failsafe`` (and ``failsafe_source``) of a run's report: the first mode the autopilot
+    switched to out of OFFBOARD. When no mode was seen leaving OFFBOARD — the bridge that
+    reports them can be gone with the node killed (composed mode) — the emulated autopilot's
+    record (``failsafe_mode`` of the simulator's outcome), in PX4's name as the bridge would
+    have reported it. Nothing for a firmware in the loop (``autopilot`` set) or no failsafe."""
+    seq = [m['mode'] for m in modes]
+    left = [b for a, b in itertools.pairwise(seq) if a == 'OFFBOARD' and b != 'OFFBOARD']
+    if left:
+        return {'failsafe': left[0]}
+    if report.get('failsafe_mode') and 'autopilot' not in report:
+        from deck_simulator.px4_emulator import px4_name
+        return {'failsafe': px4_name(report['failsafe_mode']), 'failsafe_source': 'simulator'}
+    return {}
+
+
+def _fmt(value: Any, unit: str, digits: int = 2) -> str:
+    if isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
+        return f'{value:.{digits}f} {unit}'
+    return 'n/a'
+
+
+def summary_lines(report: dict[str, Any], code: int, record: str | None) -> list[str]:
+    """The short end-of-run summary ``deckland up`` prints (also shown by ``make run``)."""
+    if report.get('interrupted'):
+        outcome = f'interrupted ({report["interrupted"]})'
+    elif report.get('success'):
+        outcome = f'landed ({report.get("reason", "success")})'
+    else:
+        outcome = f'no successful landing ({report.get("reason", "unknown")})'
+    if report.get('crash'):
+        outcome += ', CRASH'
+    elif report.get('safe') and not report.get('success'):
+        outcome += ', safe (no crash)'
+    if report.get('failsafe'):
+        outcome += f'; autopilot failsafe {report["failsafe"]}'
+    lines = [
+        '==== deckland up: summary ====',
+        f'outcome           {outcome}',
+        f'touchdown speed   {_fmt(report.get("touchdown_speed_mps"), "m/s")}',
+        f'horizontal error  {_fmt(report.get("horizontal_error_m"), "m", 3)}',
+        f'time to land      {_fmt(report.get("time_to_land_s"), "s", 1)}',
+    ]
+    if report.get('outcome'):     # the landing record (deck_simulator.outcome, campaigns')
+        lines.insert(2, f'class             {report["outcome"]}'
+                     + (' (settled)' if report.get('settled') else ''))
+    if report.get('contact_kind') not in (None, 'none'):
+        tilt = report.get('tilt_rad')
+        tilt_deg = math.degrees(tilt) if isinstance(tilt, int | float) else None
+        lines += [f'lateral speed     {_fmt(report.get("lateral_speed_mps"), "m/s")}',
+                  f'relative tilt     {_fmt(tilt_deg, "deg", 1)}',
+                  f'impacts, bounces  {report.get("impacts", 0)}, {report.get("bounces", 0)} '
+                  f'(fastest {_fmt(report.get("max_impact_speed_mps"), "m/s")}, highest hop '
+                  f'{_fmt(report.get("max_bounce_height_m"), "m", 3)})']
+    if report.get('autopilot_modes'):
+        lines.append('autopilot modes   ' + ' -> '.join(m['mode'] for m in
+                                                        report['autopilot_modes']))
+    for k in report.get('injected_faults', []):
+        lines.append(f'fault injected    node_kill {k["node"]} at {_fmt(k["at_s"], "s", 1)} '
+                     f'after the trigger')
+    for node, problem in report.get('device_problems', {}).items():
+        lines.append(f'device problem    {node}: {problem}')
+    for c in report.get('crashed_nodes', []):
+        lines.append(f'node exited       {c["node"]}: {c["description"]} ({c["action"]})')
+    bag = report.get('bag') or {}
+    if record and bag.get('not_started'):
+        lines.append(f'bag               not started: {bag["not_started"]}')
+        lines.append(f'report            {pathlib.Path(record) / "report.json"}')
+    elif record:
+        lines.append(f'bag               {record} ({bag.get("messages", "?")} messages, '
+                     f'{bag.get("topics", "?")} topics)')
+        lines.append(f'report            {pathlib.Path(record) / "report.json"}')
+    else:
+        lines.append('bag, report       not recorded (use --record DIR)')
+    lines.append(f'exit status       {code}: {EXIT_CODES.get(code, "")}')
+    return lines
