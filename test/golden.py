@@ -171,7 +171,9 @@ def _decode(topic: str, m: Any) -> tuple[str, tuple] | None:
         st, _, detail = apron_state_from_msg(m)
         if st is None:
             raise ValueError(f'golden: undecodable {detail}')
-        return 'apron', (tuple(st.to_array()), '')
+        # the v1 array for the comparisons, and the whole state (deck source, acceleration,
+        # attitude: fields the v1 array has no room for) for the planner the replay steps
+        return 'apron', (tuple(st.to_array()), '', st)
     if topic == '/planner/reference':
         sp, ff = m.setpoint_m, m.velocity_ff_mps
         return 'reference', (_stamp(m.header), vertical_frame_name(m.vertical_frame),
@@ -538,7 +540,7 @@ def replay_cores(golden: Golden, make: Any = None) -> Replay:
                 _count(out.notes, 'planner_watchdog_steps')
             aloop.on_reference(now, stamp, d[1], d[2][2], d[3][2], d[4])
         elif k == 'apron':
-            st = ApronState.from_array(d[0])
+            st = d[2] if len(d) > 2 else ApronState.from_array(d[0])
             record(ploop.on_apron(now, st))
             track_mode(now)
             used, note = _used_reference(aloop, st, refs, ref_stamps, observed)
@@ -762,9 +764,37 @@ def _isolate_ros_domain() -> None:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
+class ReplayMismatch(RuntimeError):
+    """A recording whose pure replay is outside ``CORE_TOLERANCES`` (README-golden.md,
+    decision 7); ``report`` says where."""
+
+    def __init__(self, report: Report) -> None:
+        super().__init__('the recording does not replay within CORE_TOLERANCES: '
+                         + '; '.join(report.failures))
+        self.report = report
+
+
+def record_verified(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
+                    seed: int = DEFAULT_SEED, attempts: int = 10,
+                    log: Any = sys.stderr) -> Path:
+    """:func:`record` until a recording replays (at most ``attempts`` landings)."""
+    for attempt in range(1, attempts + 1):
+        try:
+            return record(out_dir, scenario, seed, log=log, verify=True)
+        except ReplayMismatch as exc:
+            print(f'golden record: attempt {attempt} of {attempts}: {exc}', file=log)
+            if attempt == attempts:
+                raise
+    raise AssertionError('unreachable')
+
+
 def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
-           seed: int = DEFAULT_SEED, *, timeout_s: float = 60.0, log: Any = sys.stderr) -> Path:
+           seed: int = DEFAULT_SEED, *, timeout_s: float = 60.0, log: Any = sys.stderr,
+           verify: bool = False) -> Path:
     """Fly one landing with the real graph and write the trimmed golden bag into ``out_dir``.
+
+    ``verify``: install it only if its pure replay is within ``CORE_TOLERANCES`` (else
+    :class:`ReplayMismatch`; the old bag stays).
 
     The recorder (explicit topic list, on the monitor's context) is subscribed before the
     nodes start, so the bag holds every input from the first one; the landing is triggered
@@ -840,7 +870,7 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
         raise RuntimeError(f'the reference landing did not succeed: {outcome}')
     trimmed = work / 'golden'
     window = trim(raw, trimmed)
-    meta = {'version': META_VERSION, 'scenario': scenario, 'seed': seed,
+    meta: dict[str, Any] = {'version': META_VERSION, 'scenario': scenario, 'seed': seed,
             'recorded_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
             'window_ns': list(window), 'outcome': outcome, 'parameters': overrides,
             'note': 'regenerate deliberately with `make golden`; never written by tests'}
@@ -848,6 +878,12 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
     size = sum(p.stat().st_size for p in trimmed.iterdir())
     if size > MAX_BAG_BYTES:
         raise RuntimeError(f'golden bag is {size} bytes (> {MAX_BAG_BYTES}); not installed')
+    if verify:
+        gold = load(trimmed)
+        report = compare(recorded_outputs(gold), replay_cores(gold), CORE_TOLERANCES)
+        if not report.ok:
+            shutil.rmtree(work, ignore_errors=True)
+            raise ReplayMismatch(report)
     if out.exists():
         shutil.rmtree(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -1143,12 +1179,14 @@ def main(argv: list[str] | None = None) -> int:
     rec.add_argument('dir')
     rec.add_argument('--scenario', default=DEFAULT_SCENARIO)
     rec.add_argument('--seed', type=int, default=DEFAULT_SEED)
+    rec.add_argument('--attempts', type=int, default=10,
+                     help='landings flown at most until one replays (README-golden.md)')
     chk = sub.add_parser('check', help='replay DIR through the pure cores and compare')
     chk.add_argument('dir')
     args = parser.parse_args(argv)
     if args.verb == 'record':
         try:
-            out = record(args.dir, args.scenario, args.seed)
+            out = record_verified(args.dir, args.scenario, args.seed, args.attempts)
         except (RuntimeError, ValueError, OSError) as exc:
             print(f'golden record: {exc}', file=sys.stderr)
             return 1

@@ -3,7 +3,8 @@
 Everything between the node's subscriptions and its commands, on plain numbers: inputs gated
 (finite, map frame, unit orientation, stamps in order and not stale or future against
 ``now``), one tick per accepted apron state — ``planner.step``, then the horizontal loop on
-the measured position, velocity and yaw — with ``dt`` from the node clock, the watchdog's safe
+the measured position, velocity and yaw — on the apron state's stamp (measurement time, the
+watchdog's on the node clock), the watchdog's safe
 fallback while ``apron/state`` is stale, and the commands withheld when the vehicle state is
 stale, the planner disables thrust or an output is not finite. The node, the in-process
 runner and the golden replay call it (cores: ``planner.LandingPlanner``, ``horizontal``).
@@ -123,7 +124,7 @@ class PlannerLoop(InputGuard):
         if not self.check_stamp(state.t_s, last, now_s, self.timeout_s, 'apron/state'):
             return None
         self.apron = state
-        return self.step(now_s, state, dt_s)
+        return self.step(now_s, state, dt_s, tick_s=state.t_s)
 
     def on_odom(self, now_s: float, stamp_s: float, frame_id: str, position_m: Vec3,
                 q: tuple[float, float, float, float]) -> bool:
@@ -220,34 +221,39 @@ class PlannerLoop(InputGuard):
                             roll_rad=self._roll, pitch_rad=self._pitch, yaw_rad=self._yaw,
                             landed=self.landed)
 
-    def step(self, now_s: float, apron: ApronState,
-             dt_s: float | None = None) -> PlannerTick | None:
-        """One planner + horizontal-loop tick on ``apron`` at ``now_s``; None if not stepped.
+    def step(self, now_s: float, apron: ApronState, dt_s: float | None = None,
+             tick_s: float | None = None) -> PlannerTick | None:
+        """One planner + horizontal-loop tick on ``apron``; None if not stepped.
 
-        ``dt_s`` replaces the time since the last step (a caller stepping on a fixed
-        schedule, the in-process runner).
+        ``tick_s`` is the time the tick describes: the apron state's stamp on an
+        ``apron/state`` tick (the deck track, the predictor, the timers and the references
+        then run on measurement time, the same in the node, the runner and a replay, whatever
+        the delivery delay), ``now_s`` on a watchdog tick. ``now_s`` (the node clock) judges
+        the vehicle state's freshness. ``dt_s`` replaces the time since the last step (a
+        caller stepping on a fixed schedule, the in-process runner).
         """
         if self._t_pose == -math.inf or self._t_vel == -math.inf:
             self.withhold('no_vehicle')   # nothing known yet: the planner is not stepped
             return None
+        t_tick = now_s if tick_s is None else tick_s
         t_step = self.t_step
-        if t_step is not None and now_s <= t_step:
+        if t_step is not None and t_tick <= t_step:
             self.withhold('clock_not_advancing')
             return None
         if dt_s is not None:
             dt = dt_s
         else:
-            dt = now_s - t_step if t_step is not None else self.period_s
+            dt = t_tick - t_step if t_step is not None else self.period_s
             if dt > self.timeout_s:
                 dt = self.period_s            # after a pause: restart at the nominal period
-        self.t_step = now_s
+        self.t_step = t_tick
 
         vehicle = self.vehicle(now_s)
         fed = vehicle if vehicle is not None else VehicleState(
             t_s=now_s, position_m=_NAN3, velocity_mps=_NAN3, roll_rad=math.nan,
             pitch_rad=math.nan, yaw_rad=math.nan, landed=self.landed)
         # a stale vehicle state is fed as a non-finite one: the planner's safe mode runs
-        out = self.planner.step(now_s, dt, fed, apron)
+        out = self.planner.step(t_tick, dt, fed, apron)
         self.counts['steps'] += 1
         self.last_output = out
         if vehicle is None:
