@@ -53,7 +53,9 @@ def test_node_kill_engages_the_autopilot_failsafe_and_lands_softly_away_from_the
     sc = load_scenario('fault_node_kill')
     spec = sc.faults[0]
     for r in _runs('fault_node_kill'):
-        assert r.failsafes == 1 and r.failsafe_mode == 'land'
+        # the scenario's action: return, flown to the end as AUTO.RTL (its final descent too)
+        assert spec.action == 'return'
+        assert r.failsafes == 1 and r.failsafe_mode == 'return'
         assert r.outcome in ('fallback', 'hold'), (r.seed, r.reason)
         if r.outcome == 'fallback':
             # MPC_LAND_SPEED of the scenario, well below the crash speed

@@ -253,6 +253,9 @@ def test_scenario_return_failsafe_flies_home_climbs_and_lands_there():
     c = rig.sim.world.contact
     assert c.kind == 'ground' and math.dist(c.position_m[:2], home) < 0.5
     assert out['fallback'] and not out['crash'] and not out['success']
+    # the record names the mode PX4's heartbeat showed to the end (RTL lands as AUTO.RTL),
+    # not the final descent's flight law: `deckland up` reports it when the bridge is gone
+    assert out['failsafe_mode'] == 'return'
 
 
 def test_outcome_on_the_pad_counts_trigger_and_searches():

@@ -42,7 +42,7 @@ class RunOutcome:
     sim_time_s: float = 0.0
     outcome: str = ''               # safety class, see classify()
     failsafes: int = 0              # times the autopilot's offboard-loss failsafe engaged
-    failsafe_mode: str = ''         # its phase at the end, or the last before the disarm
+    failsafe_mode: str = ''         # its mode at the end (World.failsafe_mode), or the last
     final_height_m: float = math.nan   # true height above the surface below at the end
     final_speed_mps: float = math.nan  # true speed at the end (3-D)
     # the touchdown record (deck_simulator.touchdown): first contact, later impacts, bounces
@@ -108,7 +108,7 @@ def landing_outcome(world: World, seed: int, trigger_t_s: float | None, searches
     truth = world.truth()
     ap = world.autopilot
     rec.failsafes = ap.failsafes if ap is not None else 0
-    rec.failsafe_mode = world.failsafe or world.last_failsafe
+    rec.failsafe_mode = world.failsafe_mode or world.last_failsafe
     rec.final_height_m = truth.height_above_surface_m
     rec.final_speed_mps = math.hypot(*truth.velocity_mps)
     rec.outcome = classify(rec.crash, rec.contact_kind, rec.final_speed_mps,

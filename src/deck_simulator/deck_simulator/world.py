@@ -19,7 +19,13 @@ from typing import Any
 
 from deckland_common.frames import Mat3, rot_body_to_world
 
-from deck_simulator.autopilot import ACCEPTED, Autopilot, EmulatedAutopilot, in_process_params
+from deck_simulator.autopilot import (
+    ACCEPTED,
+    MODES,
+    Autopilot,
+    EmulatedAutopilot,
+    in_process_params,
+)
 from deck_simulator.contact import Surface, ground_surface
 from deck_simulator.deck import Deck, make_heave
 from deck_simulator.deck_motion import DeckMotion, HeaveDeckMotion, PadState
@@ -188,7 +194,7 @@ class World:
         self.vehicle.monitor = self.monitor
         self._watching = True     # False while resting where placed (place_on_surface)
         self._armed = True        # the motors' state while no autopilot flies
-        #: the autopilot's last failsafe phase flown ('' = none; it ends at the disarm)
+        #: the autopilot's last failsafe mode (:attr:`failsafe_mode`; '' = none)
         self.last_failsafe = ''
         self._contact: ContactEvent | None = None
 
@@ -331,6 +337,17 @@ class World:
         return ap.failsafe if ap is not None else None
 
     @property
+    def failsafe_mode(self) -> str | None:
+        """The autopilot's mode while it flies a failsafe, as its heartbeat reads it (an
+        RTL's final descent is still ``'return'``, AUTO.RTL); None outside a failsafe."""
+        ap = self.autopilot
+        phase = ap.failsafe if ap is not None else None
+        if phase is None:
+            return None
+        mode = getattr(ap, 'mode', None)
+        return mode if mode in MODES else phase
+
+    @property
     def link_stats(self) -> dict[str, int]:
         """In-process link counters ``sent``, ``lost``, ``delayed`` and the autopilot's
         ``failsafes``."""
@@ -435,9 +452,9 @@ class World:
                 self.link.deliver_due(t0)
             ap.tick(t0, self)
             if ap.failsafes:
-                fs_now = ap.failsafe
-                if fs_now is not None:
-                    self.last_failsafe = fs_now
+                fs_mode = self.failsafe_mode
+                if fs_mode is not None:
+                    self.last_failsafe = fs_mode
         # wind: mean + OU gusts, updated every GUST_UPDATE_S with the exact discretisation
         # g ← a g + σ √(1−a²) n, a = exp(−Δt/τ) (zero-order hold in between)
         g = self.gust
