@@ -764,7 +764,7 @@ def _isolate_ros_domain() -> None:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
-class ReplayMismatch(RuntimeError):
+class ReplayMismatchError(RuntimeError):
     """A recording whose pure replay is outside ``CORE_TOLERANCES`` (README-golden.md,
     decision 7); ``report`` says where."""
 
@@ -781,7 +781,7 @@ def record_verified(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCE
     for attempt in range(1, attempts + 1):
         try:
             return record(out_dir, scenario, seed, log=log, verify=True)
-        except ReplayMismatch as exc:
+        except ReplayMismatchError as exc:
             print(f'golden record: attempt {attempt} of {attempts}: {exc}', file=log)
             if attempt == attempts:
                 raise
@@ -794,7 +794,7 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
     """Fly one landing with the real graph and write the trimmed golden bag into ``out_dir``.
 
     ``verify``: install it only if its pure replay is within ``CORE_TOLERANCES`` (else
-    :class:`ReplayMismatch`; the old bag stays).
+    :class:`ReplayMismatchError`; the old bag stays).
 
     The recorder (explicit topic list, on the monitor's context) is subscribed before the
     nodes start, so the bag holds every input from the first one; the landing is triggered
@@ -883,7 +883,7 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
         report = compare(recorded_outputs(gold), replay_cores(gold), CORE_TOLERANCES)
         if not report.ok:
             shutil.rmtree(work, ignore_errors=True)
-            raise ReplayMismatch(report)
+            raise ReplayMismatchError(report)
     if out.exists():
         shutil.rmtree(out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -58,6 +58,14 @@ CHILDREN = {
             except KeyboardInterrupt:
                 return 0
     """,
+    # a heavy import (rclpy and the cores take seconds on a loaded machine): stopped there
+    'slow_import': """
+        import time
+        print('importing', flush=True)
+        time.sleep(60)
+        def main():
+            return 0
+    """,
     # prints its ROS parameters as JSON (parsed by rcl from the command line)
     'params': """
         import json, sys
@@ -198,6 +206,18 @@ def test_stop_escalates_and_kills_the_process_groups_within_the_timeout(pkg_env,
     assert orch.by_name['stubborn'].proc.returncode == -signal.SIGKILL
     orch.check()
     assert orch.exits == [] or all(e.action == 'not respawned' for e in orch.exits)
+
+
+def test_a_stop_during_the_import_exits_quietly_with_128_plus_sigint(pkg_env):
+    # a failed start stops every node, some still importing: no KeyboardInterrupt traceback
+    out = io.StringIO()
+    orch = Orchestrator([spec('slow', 'slow_import')], out=out, env=pkg_env,
+                        stop_timeout_s=5.0)
+    orch.start()
+    assert wait_for(lambda: 'importing' in orch.by_name['slow'].tail)
+    orch.stop()
+    assert orch.by_name['slow'].proc.returncode == 130
+    assert 'Traceback' not in out.getvalue() and 'KeyboardInterrupt' not in out.getvalue()
 
 
 # ------------------------------------------------------------------- parameters are data

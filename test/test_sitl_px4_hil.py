@@ -233,7 +233,10 @@ def test_px4_flies_deckland_physics_and_the_bridge_holds_the_hover(ros_context):
             op.command(22, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
             assert wait_for(lambda: core.mode == 'AUTO.TAKEOFF', 5.0)
             assert wait_for(lambda: core.mode == 'AUTO.LOITER', 30.0)
-            assert world.resting_on is None and 1.5 < v.z < 2.6, v.z
+            # PX4 ends the take-off within its altitude acceptance radius (NAV_MC_ALT_RAD)
+            # of MIS_TAKEOFF_ALT and climbs the rest in LOITER (seen: 1.34 m at the switch)
+            assert wait_for(lambda: 1.5 < v.z < 2.6, 15.0), v.z
+            assert world.resting_on is None
             # PX4 hovers the simulated vehicle at its linearised hover thrust 1 / (T/W):
             # THR_MDL_FAC inverts the simulated thrust curve (u_z = m g / γ, γ ≈ 1 at 2 m)
             assert wait_for(lambda: core.hover.valid, 25.0)

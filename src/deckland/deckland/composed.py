@@ -37,7 +37,10 @@ class ComposedSpec(NodeSpec):
 
     def command(self, python: str = sys.executable) -> list[str]:
         """argv: this module's :func:`main` with one JSON argument (data, no shell)."""
-        code = 'import sys; from deckland.composed import main; sys.exit(main(sys.argv[1:]))'
+        code = ('import signal, sys; signal.signal(signal.SIGINT, lambda *_: sys.exit(130)); '
+                'from deckland.composed import main; '
+                'signal.signal(signal.SIGINT, signal.default_int_handler); '
+                'sys.exit(main(sys.argv[1:]))')
         return [python, '-c', code, json.dumps(component_table(self.components))]
 
 

@@ -121,7 +121,12 @@ class NodeSpec:
         No shell is involved; ``package`` and ``module`` are validated identifiers (the only
         text in the ``-c`` program) and every parameter value is a quoted YAML literal.
         """
-        code = (f'import sys; from {self.package}.{self.module} import main; '
+        # a stop that comes while the node still imports (a failed start stops every node)
+        # exits quietly with 128 + SIGINT instead of a KeyboardInterrupt traceback; main()
+        # then runs with Python's default handler (the nodes install their own)
+        code = ('import signal, sys; signal.signal(signal.SIGINT, lambda *_: sys.exit(130)); '
+                f'from {self.package}.{self.module} import main; '
+                'signal.signal(signal.SIGINT, signal.default_int_handler); '
                 'sys.exit(main() or 0)')
         argv = [python, '-c', code, '--ros-args', '-r', f'__node:={self.name}']
         for key, value in self.parameters.items():
