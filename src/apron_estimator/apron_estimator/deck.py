@@ -5,8 +5,9 @@ and velocity, paper (27)-(35)); the ship's telemetry (``deck/odom``: coarse GNSS
 onto the beacon's frame by an offset learnt while both are available — the ship's GNSS error
 plus the vehicle's own local-position bias — and carried to now with its velocity and
 acceleration; a constant-velocity prediction from the last estimate; nothing. The deck's
-acceleration comes from the telemetry's velocity, else from the beacon's, low-passed; its
-attitude and yaw rate only from telemetry. Design: apron_estimator README, "Moving deck".
+acceleration comes from the telemetry's velocity (else, only with ``beacon_accel``, from the
+beacon's, low-passed); its attitude and yaw rate only from telemetry. Design: apron_estimator
+README, "Moving deck".
 """
 
 from __future__ import annotations
@@ -46,6 +47,10 @@ class DeckFusionParams:
     accel_tau_s: float = 1.0              # low-pass of the deck acceleration
     accel_window_s: float = 0.5           # velocity difference span (beacon)
     max_accel_mps2: float = 5.0           # clamp of the acceleration estimate
+    # publish the beacon-derived acceleration without telemetry (off: it is the derivative of
+    # vehicle velocity + relative velocity, so fed forward it closes a loop through the
+    # vehicle: README "Moving deck", the deck acceleration decision)
+    beacon_accel: bool = False
 
     def __post_init__(self) -> None:
         o = 'DeckFusionParams'
@@ -224,7 +229,8 @@ class DeckFusion:
         if st.tracked:
             pos, vel = st.apron_position_m, st.apron_velocity_mps
             beacon_acc = self._beacon_accel(t, vel)   # kept current either way
-            acc = beacon_acc if tel is None else self._tel_accel
+            acc = self._tel_accel if tel is not None else (
+                beacon_acc if p.beacon_accel else (0.0, 0.0))
             # the camera offsets scale with the height above the surface the lidar sees: from
             # beside the deck (the sea or ground below) they are over-scaled (estimator README,
             # Known limitations); close above the beacon the error is that small fraction
