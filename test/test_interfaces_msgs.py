@@ -186,3 +186,26 @@ def test_a_changed_definition_is_refused_not_silently_replaced(tmp_path):
         (MSG_DIR / 'Rival.msg').read_text().replace('uint16 hits', 'uint32 hits'))
     with pytest.raises(TypesysError):
         msgtypes.register(msgtypes.typestore(), tmp_path)
+
+
+def test_rivals_carry_the_trackers_hypotheses():
+    """apron/state `rivals` from HorizontalTracker.rivals: offset, hits (confirmed at the
+    tracker's rival_confirm_hits), the surface sampled under it, rejected, last seen."""
+    from apron_estimator.horizontal import HorizontalParams, _Rival
+    from deckland_common.messages import fill_rivals
+
+    from deckland_interfaces.msg import ApronState, Rival
+
+    confirm = HorizontalParams().rival_confirm_hits
+    glint = _Rival(0.6, -0.1, 10.0)
+    glint.hits, glint.surface, glint.rejected = confirm, -0.3, True   # on the ground: rejected
+    flicker = _Rival(-0.2, 0.4, 11.5)
+    msg = fill_rivals(ApronState(), [glint, flicker], 12.0, confirm, Rival)
+    a, b = msg.rivals
+    assert tuple(a.offset_m) == (0.6, -0.1) and a.hits == confirm and a.confirmed
+    assert a.sampled and a.surface_level_m == -0.3 and a.rejected
+    assert a.time_since_seen_s == pytest.approx(2.0)
+    assert tuple(b.offset_m) == (-0.2, 0.4) and b.hits == 1 and not b.confirmed
+    assert not b.sampled and b.surface_level_m == 0.0 and not b.rejected
+    assert b.time_since_seen_s == pytest.approx(0.5)
+    assert fill_rivals(msg, [], 13.0, confirm, Rival).rivals == []   # gone: cleared

@@ -18,7 +18,7 @@ import threading
 import time
 
 from deckland_common.loop_clock import PhaseLockedLoop, PhaseLockParams
-from deckland_common.messages import fill_apron_state
+from deckland_common.messages import fill_apron_state, fill_rivals
 from deckland_common.params import ParameterError
 from deckland_common.ros_node import (
     RELIABLE_QOS,
@@ -47,6 +47,7 @@ from apron_estimator.node_params import (
     estimator_params_from,
 )
 from deckland_interfaces.msg import ApronState as ApronStateMsg
+from deckland_interfaces.msg import Rival
 
 __all__ = ['ESTIMATOR_DESCRIPTIONS', 'NODE_PARAMS', 'PARAMS', 'SECTIONS', 'ApronEstimatorNode',
            'estimator_params_from', 'main']
@@ -225,7 +226,10 @@ class ApronEstimatorNode(GuardedNode, Node):
         if st is None:
             return
         msg = fill_apron_state(self._msg_state, st, self._map_frame)
-        msg.ambiguous = self.estimator.horizontal.ambiguous
+        tracker = self.estimator.horizontal
+        msg.ambiguous = tracker.ambiguous
+        if tracker.rivals or msg.rivals:
+            fill_rivals(msg, tracker.rivals, st.t_s, tracker.params.rival_confirm_hits, Rival)
         self.pub_state.publish(msg)
         # Lazy: the derived topics (viewers, figures, LANDING_TARGET) are built and published
         # only while something subscribes; the control chain reads apron/state alone.

@@ -112,6 +112,26 @@ def fill_apron_state(msg: Any, st: ApronState, frame_id: str = '') -> Any:
     return msg
 
 
+def fill_rivals(msg: Any, rivals: Any, t_s: float, confirm_hits: int, make: Any) -> Any:
+    """``msg.rivals`` (``ApronState``) from the tracker's rival hypotheses at ``t_s``
+    (``apron_estimator.horizontal.HorizontalTracker.rivals``: offset from the track, net hits,
+    the surface level sampled under it, rejected, last seen); ``make()`` builds one ``Rival``
+    message. A rival is confirmed at ``confirm_hits``. Returns ``msg``."""
+    out = []
+    for rv in rivals:
+        m = make()
+        m.offset_m = (float(rv.dx), float(rv.dy))
+        m.hits = max(0, min(65535, int(rv.hits)))
+        m.confirmed = rv.hits >= confirm_hits
+        m.sampled = rv.surface is not None
+        m.surface_level_m = float(rv.surface) if rv.surface is not None else 0.0
+        m.rejected = bool(rv.rejected)
+        m.time_since_seen_s = max(0.0, t_s - rv.t_seen)
+        out.append(m)
+    msg.rivals = out
+    return msg
+
+
 def _pair(a: Any) -> tuple[float, float]:
     return (float(a[0]), float(a[1]))
 
