@@ -267,13 +267,18 @@ class RosSession:
     With ``context=None`` a fresh ``rclpy.Context`` is initialised without rclpy's signal
     handlers (the command decides what SIGINT/SIGTERM do) and shut down by :meth:`close`.
     A borrowed context is left running. ``spin_*`` helpers run callbacks in the calling
-    thread; :meth:`spin_in_thread` runs them in a background thread instead.
+    thread; :meth:`spin_in_thread` runs them in a background thread instead. ``executor``:
+    ``'single'`` (rclpy's SingleThreadedExecutor) or ``'events'`` (its EventsExecutor, as
+    the nodes spin: a fraction of the CPU per message, for a session that forwards streams).
     """
 
-    def __init__(self, node_name: str, context: Any = None) -> None:
+    def __init__(self, node_name: str, context: Any = None, executor: str = 'single') -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
+
+        if executor not in ('single', 'events'):
+            raise ValueError(f"executor must be 'single' or 'events', got {executor!r}")
 
         self._own_context = context is None
         if context is None:
@@ -282,7 +287,11 @@ class RosSession:
         self.context = context
         self.node = rclpy.create_node(node_name, context=context,
                                       start_parameter_services=False)
-        self.executor = SingleThreadedExecutor(context=context)
+        if executor == 'events':
+            from rclpy.experimental import EventsExecutor
+            self.executor: Any = EventsExecutor(context=context)
+        else:
+            self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self._thread = None
         self._closed = False

@@ -137,7 +137,7 @@ class LiveView:
         self._server = foxglove.start_server(name='deckland', host=self.host,
                                              port=self.requested_port, context=self._fox)
         self._scene_channel = SceneUpdateChannel(SCENE_TOPIC, context=self._fox)
-        self._session = rosio.RosSession(self._node_name, self._context)
+        self._session = rosio.RosSession(self._node_name, self._context, executor='events')
         node = self._session.node
         self._discover()
         node.create_timer(self._discovery_period_s, self._discover)
