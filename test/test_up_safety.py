@@ -5,6 +5,7 @@ directory never overwrites foreign data, and the summary says what happened."""
 import argparse
 import importlib
 import ipaddress
+import math
 import pathlib
 import tokenize
 
@@ -221,3 +222,31 @@ def test_the_failsafe_is_the_first_mode_out_of_offboard_else_the_emulators_recor
     # no failsafe flown, or a real firmware in the loop: nothing is made up
     assert failsafe_fields(seen, {'failsafe_mode': ''}) == {}
     assert failsafe_fields(seen, {'failsafe_mode': 'return', 'autopilot': 'px4-sitl'}) == {}
+
+
+def test_kill_schedule_kills_each_fault_once_and_releases_at_its_end():
+    from types import SimpleNamespace as F
+
+    from deckland.mission_report import KillSchedule
+
+    sched = KillSchedule([F(node='b', start_s=3.0, end_s=math.inf),
+                          F(node='a', start_s=1.0, end_s=2.5)])
+    assert sched.due(0.5) == ([], [])
+    kills, released = sched.due(1.0)
+    assert [f.node for f in kills] == ['a'] and released == []
+    assert sched.due(2.0) == ([], [])
+    kills, released = sched.due(3.2)              # a's end passed, b's start too
+    assert [f.node for f in kills] == ['b'] and released == ['a']
+    assert sched.due(100.0) == ([], [])           # b is never released
+
+
+def test_an_outcome_of_another_simulation_is_not_ours():
+    from deckland.mission_report import parse_outcome
+
+    mine = {'scenario': 'paper', 'seed': 3}
+    assert parse_outcome('{"scenario": "paper", "seed": 3, "success": true}', mine) == (
+        {'scenario': 'paper', 'seed': 3, 'success': True}, '')
+    assert parse_outcome('{"scenario": "paper", "seed": 4}', mine) == (None, 'foreign')
+    out, why = parse_outcome('[1, 2]', mine)
+    assert why == '' and out['reason'].startswith('unparsable outcome')
+    assert parse_outcome('not json', {})[0]['reason'] == 'unparsable outcome: not json'

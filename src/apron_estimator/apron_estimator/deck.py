@@ -228,9 +228,9 @@ class DeckFusion:
         lim = p.max_accel_mps2
         if st.tracked:
             pos, vel = st.apron_position_m, st.apron_velocity_mps
-            beacon_acc = self._beacon_accel(t, vel)   # kept current either way
-            acc = self._tel_accel if tel is not None else (
-                beacon_acc if p.beacon_accel else (0.0, 0.0))
+            # the beacon's window is kept only when it can be published (D6)
+            beacon_acc = self._beacon_accel(t, vel) if p.beacon_accel else (0.0, 0.0)
+            acc = self._tel_accel if tel is not None else beacon_acc
             # the camera offsets scale with the height above the surface the lidar sees: from
             # beside the deck (the sea or ground below) they are over-scaled (estimator README,
             # Known limitations); close above the beacon the error is that small fraction

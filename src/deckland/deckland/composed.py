@@ -18,7 +18,7 @@ import json
 import sys
 from typing import Any
 
-from deckland.orchestrator import NodeSpec
+from deckland.orchestrator import NodeSpec, launcher_code
 
 #: name of the composed process in the orchestrator's log and report
 COMPOSED_NAME = 'stack'
@@ -37,10 +37,7 @@ class ComposedSpec(NodeSpec):
 
     def command(self, python: str = sys.executable) -> list[str]:
         """argv: this module's :func:`main` with one JSON argument (data, no shell)."""
-        code = ('import signal, sys; signal.signal(signal.SIGINT, lambda *_: sys.exit(130)); '
-                'from deckland.composed import main; '
-                'signal.signal(signal.SIGINT, signal.default_int_handler); '
-                'sys.exit(main(sys.argv[1:]))')
+        code = launcher_code('deckland.composed', 'main(sys.argv[1:])')
         return [python, '-c', code, json.dumps(component_table(self.components))]
 
 

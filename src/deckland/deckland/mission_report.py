@@ -9,6 +9,7 @@ command's exit statuses (``src/deckland/README-up.md``).
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import pathlib
 from typing import Any
@@ -38,6 +39,42 @@ def failsafe_fields(modes: list[dict[str, Any]], report: dict[str, Any]) -> dict
         from deck_simulator.px4_emulator import px4_name
         return {'failsafe': px4_name(report['failsafe_mode']), 'failsafe_source': 'simulator'}
     return {}
+
+
+def parse_outcome(text: str, expect: dict[str, Any]) -> tuple[dict[str, Any] | None, str]:
+    """A ``sim/outcome`` message: ``(outcome, '')``, ``(None, 'foreign')`` for another
+    simulation's (a key of ``expect`` differs: another graph on the ROS domain), or an
+    ``{'reason': 'unparsable ...'}`` outcome for text that is no JSON object."""
+    try:
+        outcome = json.loads(text)
+    except ValueError:
+        outcome = None
+    if not isinstance(outcome, dict):
+        return {'reason': f'unparsable outcome: {text[:80]}'}, ''
+    if any(outcome.get(k) != v for k, v in expect.items()):
+        return None, 'foreign'
+    return outcome, ''
+
+
+class KillSchedule:
+    """When the scenario's ``node_kill`` faults act, in seconds since the landing trigger:
+    :meth:`due` returns the faults to kill now and the nodes to release (a fault with a
+    finite ``end_s``), each once."""
+
+    def __init__(self, faults: list[Any]) -> None:
+        self._pending = sorted(faults, key=lambda f: f.start_s)
+        self._releases: list[tuple[float, str]] = []
+
+    def due(self, t_s: float) -> tuple[list[Any], list[str]]:
+        kills = []
+        while self._pending and t_s >= self._pending[0].start_s:
+            f = self._pending.pop(0)
+            kills.append(f)
+            if math.isfinite(f.end_s):
+                self._releases.append((f.end_s, f.node))
+        released = [node for end, node in self._releases if t_s >= end]
+        self._releases = [r for r in self._releases if t_s < r[0]]
+        return kills, released
 
 
 def _fmt(value: Any, unit: str, digits: int = 2) -> str:

@@ -61,6 +61,18 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
 
 
+def launcher_code(module: str, call: str) -> str:
+    """The ``-c`` program of a node process: ``from MODULE import main; sys.exit(CALL)``.
+
+    A stop that comes while the node still imports (a failed start stops every node) exits
+    quietly with 128 + SIGINT instead of a KeyboardInterrupt traceback; ``main`` then runs
+    with Python's default handler (the nodes install their own).
+    """
+    return ('import signal, sys; signal.signal(signal.SIGINT, lambda *_: sys.exit(130)); '
+            f'from {module} import main; '
+            f'signal.signal(signal.SIGINT, signal.default_int_handler); sys.exit({call})')
+
+
 @dataclass
 class NodeSpec:
     """One node of the graph (validated at construction: ``ValueError`` names the field)."""
@@ -121,13 +133,7 @@ class NodeSpec:
         No shell is involved; ``package`` and ``module`` are validated identifiers (the only
         text in the ``-c`` program) and every parameter value is a quoted YAML literal.
         """
-        # a stop that comes while the node still imports (a failed start stops every node)
-        # exits quietly with 128 + SIGINT instead of a KeyboardInterrupt traceback; main()
-        # then runs with Python's default handler (the nodes install their own)
-        code = ('import signal, sys; signal.signal(signal.SIGINT, lambda *_: sys.exit(130)); '
-                f'from {self.package}.{self.module} import main; '
-                'signal.signal(signal.SIGINT, signal.default_int_handler); '
-                'sys.exit(main() or 0)')
+        code = launcher_code(f'{self.package}.{self.module}', 'main() or 0')
         argv = [python, '-c', code, '--ros-args', '-r', f'__node:={self.name}']
         for key, value in self.parameters.items():
             argv += ['-p', f'{key}:={_ros_value(value, key)}']

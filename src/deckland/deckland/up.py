@@ -24,7 +24,6 @@ import argparse
 import contextlib
 from importlib import resources
 import json
-import math
 import pathlib
 import shutil
 import signal
@@ -34,7 +33,13 @@ import threading
 import time
 from typing import Any
 
-from deckland.mission_report import EXIT_CODES, failsafe_fields, summary_lines
+from deckland.mission_report import (
+    EXIT_CODES,
+    KillSchedule,
+    failsafe_fields,
+    parse_outcome,
+    summary_lines,
+)
 from deckland.orchestrator import Orchestrator, describe_status, load_graph, members
 
 RUN_MARKERS = ('report.json', 'metadata.yaml')
@@ -139,15 +144,8 @@ class MissionMonitor:
                                                               raw=True)
 
     def _on_outcome(self, msg) -> None:
-        try:
-            outcome = json.loads(msg.data)
-        except ValueError:
-            self.outcome = {'reason': f'unparsable outcome: {msg.data[:80]}'}
-            return
-        if not isinstance(outcome, dict):
-            self.outcome = {'reason': f'unparsable outcome: {msg.data[:80]}'}
-            return
-        if any(outcome.get(k) != v for k, v in self.expect.items()):
+        outcome, why = parse_outcome(msg.data, self.expect)
+        if why == 'foreign':
             self.foreign_outcomes += 1   # another graph shares this ROS domain
             return
         self.outcome = outcome
@@ -453,22 +451,18 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
             report = {'success': False, 'reason': f'start_landing refused: {msg}'}
             result_code = 4
             raise _EndRunError
-        pending = list(kills)
-        releases: list[tuple[float, str]] = []
+        schedule = KillSchedule(kills)
         deadline = t_trigger + args.timeout
         while time.monotonic() < deadline and not stop_requested.is_set():
             now = time.monotonic() - t_trigger
-            while pending and now >= pending[0].start_s:
-                f = pending.pop(0)
+            to_kill, to_release = schedule.due(now)
+            for f in to_kill:
                 killed = orch.kill(f.node)
                 injected.append({'type': 'node_kill', 'node': f.node, 'at_s': round(now, 3),
                                  'planned_s': f.start_s, 'killed': killed,
                                  'nodes_lost': members(orch.by_name[f.node].spec)})
-                if math.isfinite(f.end_s):
-                    releases.append((f.end_s, f.node))
-            for item in [r for r in releases if now >= r[0]]:
-                releases.remove(item)
-                orch.release(item[1])
+            for node in to_release:
+                orch.release(node)
             orch.check()
             if monitor.outcome is not None:
                 break
