@@ -21,7 +21,7 @@ os.environ.setdefault('RCUTILS_LOGGING_BUFFERED_STREAM', '1')
 os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = os.path.join(
     os.path.dirname(os.path.abspath(__file__)), 'fastdds_profile.xml')
 # The tests patch and inspect the Python sources of the cores: never load the compiled build
-# in this process (test_accel.py runs it in subprocesses of its own).
+# in this process (deckland/test_accel.py runs it in subprocesses of its own).
 os.environ['DECKLAND_CORES'] = 'python'
 
 from hypothesis import settings

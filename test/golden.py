@@ -52,7 +52,7 @@ GOLDEN_ESTIMATOR_CLOCK = 'imu'
 MAX_BAG_BYTES = 3 * 1024 * 1024
 
 #: Node-level parameters the replay mirrors (defaults of the nodes' PARAMS; the test
-#: ``test_golden_cores.py::test_node_defaults_mirrored`` checks them against the nodes).
+#: ``system/test_golden_cores.py::test_node_defaults_mirrored`` checks them against the nodes).
 NODE_DEFAULTS: dict[str, dict[str, Any]] = {
     'apron_estimator': {'rate_hz': 100.0, 'input_timeout_s': 0.5, 'gravity_mps2': 9.81,
                         'position_pair_tolerance_s': 0.005},

@@ -31,7 +31,7 @@ from deckland_common import validate as chk
 
 #: Largest plausible IMU specific force per axis (m/s²): 16 g, the full scale of the Pixhawk
 #: IMUs. A larger (finite) reading cannot come from the sensor; fed to the core it wrecks the
-#: horizontal filter's acceleration integrals for good (tests/test_fuzz_nodes.py).
+#: horizontal filter's acceleration integrals for good (test/system/test_fuzz_nodes.py).
 MAX_SPECIFIC_FORCE_MPS2 = 16.0 * 9.80665
 
 #: Variance (m², m²/s², rad²) published for a quantity that is not known.

@@ -2,11 +2,11 @@
 
 :class:`ArduPilotEmulator` keeps :class:`~deck_simulator.px4_emulator.Px4Emulator`'s wire
 (transport, parser, signing, telemetry encoding, TIMESYNC answers) and replaces what differs on
-ArduCopter, each point measured on 4.5.6 SITL (``test_sitl_ardupilot_conformance.py`` runs the
-same expectations against both): streams off until asked, HIGHRES_IMU DENIED, custom modes,
-PARAM_VALUE as plain floats, GUID_OPTIONS (climb-rate thrust when bit 3 is clear), FAILED for
-refusals, GUID_TIMEOUT (last setpoint, then level and hold altitude, never a landing), LAND's
-land detector and auto-disarm, the GCS failsafe, and STATUSTEXT with ArduCopter's wording.
+ArduCopter, each point measured on 4.5.6 SITL (``test_sitl_ardupilot_conformance.py``
+runs the same expectations against both): streams off until asked, HIGHRES_IMU DENIED, custom
+modes, PARAM_VALUE as plain floats, GUID_OPTIONS (climb-rate thrust when bit 3 is clear),
+FAILED for refusals, GUID_TIMEOUT (last setpoint, then level and hold altitude, never a landing),
+LAND's land detector and auto-disarm, the GCS failsafe, and STATUSTEXT with ArduCopter's wording.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ Nothing is compiled for the ROS nodes, which always run the Python sources.
   when the build is missing, was made for another Python, or any compiled source changed since:
   a stale extension never flies. It must run before any core module is imported.
 
-`test/test_accel.py` flies the same seeds both ways and requires identical results.
+`test/deckland/test_accel.py` flies the same seeds both ways and requires identical results.
 The accel directory is ``$DECKLAND_ACCEL_DIR`` if set, else ``build/accel`` at the root of the
 source tree this package lives in (an editable install), else ``~/.cache/deckland/accel``.
 """

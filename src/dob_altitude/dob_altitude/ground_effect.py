@@ -7,7 +7,7 @@ radius and z_p the height of the rotor plane above the surface. (4) diverges at
 z_p = r √ρ / 4 and is meaningless below it, so the height is clamped from below and the gain
 from above, as every implementation does near contact.
 
-Edge cases (decided here, tested in ``test/test_dob_ground_effect.py``):
+Edge cases (decided here, tested in ``test/dob_altitude/test_ground_effect.py``):
 
 * ``rotor_height_m`` below ``min_height_m`` (including negative: lidar noise at contact, a
   rotor plane estimated below the deck) → clamped to ``min_height_m``, i.e. *near* the ground.

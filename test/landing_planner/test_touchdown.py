@@ -14,8 +14,8 @@ from deckland_common.contract import Mode
 from dob_altitude.adapter import ROTOR_HEIGHT_OFFSET_M, altitude_input, make_controller
 from dob_altitude.ground_effect import ground_effect_gain
 from landing_planner.planner import LandingPlanner, PlannerParams
+from planner_support import make_apron, make_vehicle, make_vertical
 import pytest
-from test_planner_support import make_apron, make_vehicle, make_vertical
 
 DT = 0.01
 SUBSTEPS = 4

@@ -143,7 +143,7 @@ def test_bad_server_options_are_refused():
     assert CameraParams().fov_x_deg == 60.0
 
 
-LAYOUT = __import__('pathlib').Path(__file__).resolve().parents[1] / 'docs' / 'foxglove' / \
+LAYOUT = __import__('pathlib').Path(__file__).resolve().parents[2] / 'docs' / 'foxglove' / \
     'deckland-layout.json'
 #: the type of each topic the layout names (as the graph publishes them)
 LAYOUT_TYPES = {'/apron/state': 'deckland_interfaces/msg/ApronState',

@@ -9,7 +9,7 @@ import pytest
 
 pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
 
-BAG = Path(__file__).parent / 'fixtures' / 'golden_paper'
+BAG = Path(__file__).parents[1] / 'fixtures' / 'golden_paper'
 
 
 def test_nodes_reproduce_the_recording(ros_context):

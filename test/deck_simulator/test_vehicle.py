@@ -3,13 +3,13 @@
 import dataclasses
 import math
 
+from contact_rig import bounce_apex_m
 from deck_simulator.contact import Surface, ground_surface
 from deck_simulator.rigid_body import RigidBodyParams
 from deck_simulator.rotor_ground_effect import RotorGroundEffectParams, multirotor_gain_level
 from deck_simulator.vehicle import Vehicle, VehicleParams, mix, unmix
 from deckland_common.frames import rot_body_to_world
 import pytest
-from test_sim_contact import bounce_apex_m
 
 DT = 1.0 / 400.0
 NO_DRAG = {'drag_linear_n_per_mps': 0.0, 'drag_quad_h_kg_per_m': 0.0,

@@ -19,7 +19,7 @@ from deckland.up import (
 )
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 SOCKET_WORDS = ('address', 'url', 'connection', 'host')
 
 

@@ -36,7 +36,7 @@ import pytest
 from deck_simulator import deck
 
 DT = 0.01
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 def _bench():

@@ -13,7 +13,7 @@ from deck_simulator.ship_params import ShipParams
 from deck_simulator.world import World
 from deckland_common.frames import mat_t_vec
 import pytest
-from test_simnode_loop import Rig, calm
+from simloop_rig import Rig, calm
 
 DT = 1.0 / 400.0
 

@@ -3,8 +3,8 @@
 from deckland_common.contract import Mode
 from landing_planner.planner import _STATES, PlannerParams
 from landing_planner.search import SearchPattern
+from planner_support import AREA, Driver
 import pytest
-from test_planner_transitions import AREA, Driver
 
 
 def test_retry_grants_max_attempts_then_refuses_until_reset():

@@ -15,7 +15,7 @@ import math
 
 from deckland_common.contract import Mode
 from landing_planner.planner import LandingPlanner, PlannerParams
-from test_planner_support import make_apron, make_vehicle, make_vertical
+from planner_support import make_apron, make_vehicle, make_vertical
 
 DT = 0.01
 

@@ -37,7 +37,8 @@ def graph_view(composed: bool, env: dict) -> dict:
     Read from the DDS graph, which discovery threads keep, not the executors: it holds on a
     loaded machine where a starved composed executor answers no service for a minute. The
     parameters are the same by construction: the composed nodes get the very ``--ros-args``
-    of the per-process command lines (test_orchestrator_stops.py), parsed by the same rcl."""
+    of the per-process command lines (deckland/test_orchestrator_stops.py), parsed by the
+    same rcl."""
     import argparse
     import io
     import time

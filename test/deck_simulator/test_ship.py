@@ -24,7 +24,7 @@ import pytest
 import yaml
 
 G = 9.81
-DOC = pathlib.Path(__file__).resolve().parents[1] / 'docs' / 'world' / 'ship.md'
+DOC = pathlib.Path(__file__).resolve().parents[2] / 'docs' / 'world' / 'ship.md'
 HEAVE, ROLL, PITCH = 2, 3, 4
 
 

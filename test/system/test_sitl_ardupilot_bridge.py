@@ -33,7 +33,7 @@ pytestmark = [pytest.mark.sitl, pytest.mark.sitl_mission, pytest.mark.ros,
 SITL_PARAMS = {'AHRS_EKF_TYPE': 10, 'RNGFND1_TYPE': 100, 'RNGFND1_ORIENT': 25}
 #: the link monitor's limit here: SITL runs niced on a shared 2-core machine and answers
 #: TIMESYNC late under load (once 329 setpoints withheld at the 60 ms default, then the stop
-#: action flew the rest); the monitor itself is tested in test_latency_monitor.py
+#: action flew the rest); the monitor itself is tested in mavlink_bridge/test_monitors.py
 LATENCY_S = 0.25
 #: and its stop action's: the helper's 100 Hz stream has 0.3 s gaps there under load
 STOP_AFTER_S = 0.8

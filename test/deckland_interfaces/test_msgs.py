@@ -12,7 +12,7 @@ import pytest
 
 from deckland import msgtypes
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MSG_DIR = ROOT / 'src' / 'deckland_interfaces' / 'msg'
 INSTALLED = Path(sys.prefix) / 'share' / 'deckland_interfaces' / 'msg'
 MESSAGES = sorted(p.stem for p in MSG_DIR.glob('*.msg'))

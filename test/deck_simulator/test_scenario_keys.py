@@ -25,7 +25,8 @@ import yaml
 
 DT = 1.0 / 400.0
 #: keys that are not a leaf of the world's configuration: ``faults`` is a list of fault
-#: entries with their own schema (each type's keys are tested by test_faults_scenario.py)
+#: entries with their own schema (each type's keys are tested by
+#: deck_simulator/test_faults_scenario.py)
 NOT_LEAVES = {'faults'}
 #: alternatives for string keys (the first valid one that differs from the default is used)
 STRINGS = {'model': ['sine', 'sea_state', 'triangle', 'none'],

@@ -189,17 +189,51 @@ class StandIn:
         return seq
 
 
-def test_stand_in_hover_is_steady():
-    """Sanity check of the stand-in itself: idle hover stays where it is."""
-    sim = StandIn(start_xy=(-3.0, 0.0))
-    sim.run(3.0)
-    assert sim.planner.mode is Mode.IDLE
-    assert abs(sim.x + 3.0) < 1e-6 and abs(sim.z - 2.0) < 1e-3
+DT = 0.01
 
 
-def test_stand_in_tilt_moves_toward_setpoint():
-    """The horizontal loop in the stand-in drives the point mass to the setpoint."""
-    sim = StandIn(start_xy=(-3.0, 0.0))
-    sim.planner.start_landing(0.0)
-    sim.run(4.0)
-    assert sim.x > -2.0   # moved toward the landing area at (0, 0)
+AREA = (0.0, 0.0)
+
+
+class Driver:
+    """Steps a planner at 100 Hz with a vehicle that sits exactly where it is told."""
+
+    def __init__(self, params=None, xy=AREA, height=2.0):
+        self.p = LandingPlanner(params or PlannerParams(landing_area_m=AREA))
+        self.t = 0.0
+        self.xy = xy
+        self.height = height
+        self.closing = 0.0
+        self.beacon = None          # None = not tracked
+        self.epoch = 0
+        self.rebase = 0.0
+        self.valid = True
+        self.surface = 0.0
+        self.landed_flag = False
+        self.out = None
+
+    def step(self):
+        vert = make_vertical(self.height, self.closing, self.surface, self.epoch, self.rebase,
+                             self.valid)
+        apron = make_apron(self.t, self.xy, self.beacon, vert)
+        veh = make_vehicle(self.t, self.xy, self.height + self.surface, landed=self.landed_flag)
+        self.out = self.p.step(self.t, DT, veh, apron)
+        self.t = round(self.t + DT, 9)
+        return self.out
+
+    def run(self, duration, until=None):
+        end = self.t + duration
+        while self.t < end - 1e-9:
+            self.step()
+            if until is not None and self.out.mode is until:
+                break
+        return self.out
+
+
+def aligned_driver(**kw):
+    d = Driver(PlannerParams(landing_area_m=AREA, **kw))
+    d.beacon = (0.05, 0.0)
+    d.p.start_landing(0.0)
+    d.run(0.05)
+    assert d.out.mode is Mode.ALIGN
+    return d

@@ -17,7 +17,7 @@ import pytest
 
 from dob_altitude import adapter
 
-BAG = Path(__file__).parent / 'fixtures' / 'golden_paper'
+BAG = Path(__file__).parents[1] / 'fixtures' / 'golden_paper'
 
 
 @pytest.fixture(scope='module')

@@ -23,8 +23,8 @@ from deckland_common.contract import (
 from landing_planner.commit_window import CommitParams
 from landing_planner.deck_track import DeckTrack, DeckTrackParams
 from landing_planner.planner import LandingPlanner, PlannerParams
+from planner_support import make_apron, make_vehicle, make_vertical
 import pytest
-from test_planner_support import make_apron, make_vehicle, make_vertical
 
 DT = 0.01
 

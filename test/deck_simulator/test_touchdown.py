@@ -10,11 +10,11 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from contact_rig import DT, G, Rig, bounce_apex_m
 from deck_simulator.contact import ContactParams, Surface
 from deck_simulator.rigid_body import RigidBodyParams
 from deck_simulator.touchdown import OutcomeRules, Pad, TouchdownMonitor
 import pytest
-from test_sim_contact import DT, G, Rig, bounce_apex_m
 
 TOP_M = 0.6
 

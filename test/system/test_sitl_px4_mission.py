@@ -34,7 +34,7 @@ except Px4NotFoundError as exc:
     PX4_ROOT, NO_PX4 = None, str(exc)
 
 DECKLAND = str(pathlib.Path(sys.executable).with_name('deckland'))
-REPO = pathlib.Path(__file__).resolve().parents[1]
+REPO = pathlib.Path(__file__).resolve().parents[2]
 BRIDGE_KILL = REPO / 'docs' / 'results' / 'scenarios' / 'fault_bridge_kill.yaml'
 
 

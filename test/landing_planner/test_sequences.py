@@ -5,8 +5,8 @@ import math
 
 from deckland_common.contract import Mode
 from landing_planner.planner import PlannerParams
+from planner_support import StandIn
 import pytest
-from test_planner_support import StandIn
 
 ACC = PlannerParams().vertical_accel_mps2
 
