@@ -75,7 +75,7 @@ $(RAY_STAMP): $(STAMP) requirements-ray.txt
 
 setup-ray: $(RAY_STAMP)
 
-# The compiled cores for batch runs (deckland.accel, mypyc): rebuilt only when a compiled
+# The compiled cores for batch runs (deckland.batch.accel, mypyc): rebuilt only when a compiled
 # source changed. Campaigns run ~3x faster with them; they fall back to the sources without.
 accel: setup
 	@$(VENV)/bin/deckland accel status >/dev/null 2>&1 || $(VENV)/bin/deckland accel build
@@ -96,7 +96,7 @@ lint: setup
 
 # Deliberate only (never run by tests): fly the reference landing and rewrite the golden bag.
 golden: setup
-	$(PY) test/golden.py record test/fixtures/golden_paper
+	$(PY) test/support/golden.py record test/fixtures/golden_paper
 
 clean:
 	rm -rf $(VENV) runs build install log .pytest_cache

@@ -6,10 +6,8 @@ imports rclpy, so parallel CI jobs and developers' machines never see each other
 
 import os
 import random
-import socket
 import sys
 import threading
-import time
 
 # (under pytest-xdist each worker draws from its own half of 1-100: no two share a domain)
 os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 50) + 50 * (
@@ -34,7 +32,6 @@ settings.load_profile('deckland')
 sys.dont_write_bytecode = True
 
 
-_SESSION_DOMAIN = int(os.environ['ROS_DOMAIN_ID'])
 
 #: markers of tests whose pass depends on wall-clock scheduling: only these are retried
 TIMING_MARKERS = ('ros', 'timing')
@@ -68,34 +65,6 @@ def pytest_runtest_setup(item):
 
 
 _NICED: list[bool] = []
-
-
-def wait_for(pred, timeout_s=5.0):
-    """Poll ``pred()`` every 10 ms until it is true (True) or ``timeout_s`` passes (False)."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return False
-
-
-def free_udp_port() -> int:
-    """A loopback UDP port free now (racy: for tests whose binder takes no socket)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
-
-
-def isolated_env(**extra: str) -> dict:
-    """Environment for a subprocess graph: its own ROS domain, apart from this session's.
-
-    A whole graph started by a test (``deckland up``, a bench) must not hear another test's
-    nodes (e.g. a latched ``sim/outcome`` of a simulator another test has not yet torn down).
-    """
-    domain = random.SystemRandom().choice(
-        [d for d in range(101, 201) if d != _SESSION_DOMAIN])
-    return dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1', **extra)
 
 
 @pytest.fixture

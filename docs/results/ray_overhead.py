@@ -12,9 +12,9 @@ import json
 import os
 import time
 
-from deckland.backends import LocalPool, RayBackend
-from deckland.campaign import make_chunks
-from deckland.runner import RunConfig
+from deckland.batch.backends import LocalPool, RayBackend
+from deckland.batch.campaign import make_chunks
+from deckland.batch.runner import RunConfig
 
 
 def per_task_s(backend, tasks: int) -> float:

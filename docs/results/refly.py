@@ -1,7 +1,7 @@
 """Re-fly the README results: every built-in scenario, dob / pid / constant-rate, same seeds.
 
 ``python docs/results/refly.py [--runs N] [--seed 1] [--out JSON] [--only a,b] [--cores C]``
-flies each campaign through `deckland.campaign.run_campaign` with the deckland of the
+flies each campaign through `deckland.batch.campaign.run_campaign` with the deckland of the
 interpreter that runs it (so the same script flies an older tree from that tree's venv),
 writes one JSON and, when the other column exists, the old | new Markdown table
 (`docs/results/world_refly_table.md`) and the README's results table between its markers.
@@ -97,11 +97,11 @@ def tree() -> dict[str, str]:
 
 
 def fly(args: argparse.Namespace) -> dict[str, Any]:
-    from deckland import accel
+    from deckland.batch import accel
     cores = accel.enable(args.cores)   # before anything imports a core module
-    from deckland.backends import LocalPool
-    from deckland.campaign import run_campaign
-    from deckland.runner import RunConfig
+    from deckland.batch.backends import LocalPool
+    from deckland.batch.campaign import run_campaign
+    from deckland.batch.runner import RunConfig
 
     names = scenario_names()
     only = set(args.only.split(',')) if args.only else None

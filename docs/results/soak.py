@@ -54,7 +54,7 @@ def start_load(core: int, busy: float) -> subprocess.Popen | None:
 
 
 def bag_status(run: pathlib.Path) -> dict:
-    from deckland.bag import bag_info, is_recording, needs_reindex
+    from deckland.ros.bag import bag_info, is_recording, needs_reindex
 
     try:
         if is_recording(run) or needs_reindex(run):

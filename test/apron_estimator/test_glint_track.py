@@ -156,7 +156,7 @@ def test_the_former_edge_strikes_land_on_the_deck(seed):
     """The three runs of ``campaign --scenario fault_false_blobs --runs 40 --seed 1`` that
     struck the deck edge before the fix (simulated physics decides the outcome)."""
     from deck_simulator.scenario import load_scenario
-    from deckland.runner import RunConfig, run_landing
+    from deckland.batch.runner import RunConfig, run_landing
     res = run_landing(load_scenario('fault_false_blobs'), seed, RunConfig())
     assert res.outcome in ('deck', 'fallback', 'hold'), res.reason
     assert not res.crash

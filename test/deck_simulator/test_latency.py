@@ -10,7 +10,7 @@ from deck_simulator.faults import parse_faults
 from deck_simulator.px4_emulator import EmulatorParams, MemoryLink, Px4Emulator
 from deck_simulator.scenario import load_scenario
 from deck_simulator.world import World
-from deckland.runner import RunConfig, run_landing
+from deckland.batch.runner import RunConfig, run_landing
 from mavlink_bridge.core import LinkMonitor
 from pymavlink.dialects.v20 import common as mavlink
 import pytest

@@ -16,7 +16,7 @@ from deck_simulator.loop import TickSchedule, body_rates
 from deck_simulator.outcome import RunOutcome, outcome_json
 from deck_simulator.scenario import load_scenario
 from deck_simulator.transport import parse_mavlink_url
-from deckland.runner import RunResult
+from deckland.batch.runner import RunResult
 from deckland_common.frames import rot_body_to_world
 from pixy_driver.protocol import PixyParser
 from pymavlink.dialects.v20 import common as mavlink

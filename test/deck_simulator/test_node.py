@@ -10,8 +10,8 @@ import subprocess
 import sys
 import time
 
-from conftest import wait_for
 import pytest
+from rostest import wait_for
 
 pytestmark = pytest.mark.ros
 

@@ -19,7 +19,7 @@ from deck_simulator.scenario import (
 from deck_simulator.ship_link import ShipEncoder, ShipTelemetryParams
 from deck_simulator.ship_params import ShipParams
 from deck_simulator.world import SENSOR_STREAMS, World
-from deckland.runner import RunConfig, run_landing
+from deckland.batch.runner import RunConfig, run_landing
 import pytest
 import yaml
 
@@ -160,7 +160,7 @@ def merge(a: dict, b: dict) -> dict:
 
 def load_like_campaign(data: dict, tmp_path: pathlib.Path) -> Scenario:
     """Written to a file; the driver's ``load_scenario(path)`` validates it, the worker
-    parses the same text (deckland.backends)."""
+    parses the same text (deckland.batch.backends)."""
     path = tmp_path / 'scenario.yaml'
     text = yaml.safe_dump(data, sort_keys=False)
     path.write_text(text, encoding='utf-8')

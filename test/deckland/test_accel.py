@@ -1,4 +1,4 @@
-"""The compiled cores (deckland.accel, mypyc) fly exactly what the Python sources fly.
+"""The compiled cores (deckland.batch.accel, mypyc) fly exactly what the Python sources fly.
 
 The equivalence test runs the same seeded landings in two fresh processes, one with
 ``--cores python`` and one with ``--cores compiled``, and compares every float of every
@@ -15,9 +15,8 @@ import pathlib
 import subprocess
 import sys
 
+from deckland.batch import accel
 import pytest
-
-from deckland import accel
 
 # Flown both ways: every built-in (incl. 3-D-free sea states) and fault scenario, dob; and the
 # two baselines on a nominal and an irregular-heave scenario.
@@ -31,10 +30,10 @@ _SEEDS = (100001, 200002)
 
 _FLY = r"""
 import hashlib, json, sys
-from deckland import accel
+from deckland.batch import accel
 used = accel.enable(sys.argv[1])
 from deck_simulator.scenario import load_scenario
-from deckland.runner import RunConfig, run_landing
+from deckland.batch.runner import RunConfig, run_landing
 out = {'cores': used, 'runs': {}}
 for scenario, controller in json.loads(sys.argv[2]):
     sc = load_scenario(scenario)
@@ -149,7 +148,7 @@ def test_enable_falls_back_or_fails_without_a_usable_build(tmp_path):
     """'auto' flies the sources and says why; 'compiled' is an error, never a silent fallback.
     Run in a fresh process: enable() changes how the cores import for the whole process."""
     code = ('import json, pathlib, sys\n'
-            'from deckland import accel\n'
+            'from deckland.batch import accel\n'
             'd = pathlib.Path(sys.argv[1])\n'
             'auto = accel.enable("auto", d)\n'
             'try:\n'
@@ -168,7 +167,7 @@ def test_enable_falls_back_or_fails_without_a_usable_build(tmp_path):
 def test_enable_refuses_once_a_core_was_imported_as_python():
     _ready()
     code = ('import apron_estimator.estimator\n'
-            'from deckland import accel\n'
+            'from deckland.batch import accel\n'
             'try:\n'
             '    accel.enable("compiled"); print("enabled")\n'
             'except accel.AccelError as e:\n'

@@ -9,9 +9,9 @@ import sys
 import threading
 import time
 
-from conftest import isolated_env, wait_for
-from deckland.bench import set_attitude_target_boot_ms, stamp_ms
+from deckland.graph.bench import set_attitude_target_boot_ms, stamp_ms
 import pytest
+from rostest import isolated_env, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -88,7 +88,7 @@ def test_bridge_puts_the_thrust_stamp_into_time_boot_ms(ros_context):
 def test_short_bench_run_writes_finite_positive_figures(tmp_path):
     out = tmp_path / 'bench.json'
     proc = subprocess.run(
-        [sys.executable, '-m', 'deckland.bench', 'latency', '--duration', '5', '--out',
+        [sys.executable, '-m', 'deckland.graph.bench', 'latency', '--duration', '5', '--out',
          str(out), '--log', str(tmp_path / 'graph.log'), '--startup-timeout', '12'],
         capture_output=True, text=True, timeout=40, env=isolated_env())
     assert out.exists(), proc.stdout + proc.stderr

@@ -4,7 +4,7 @@ import math
 import os
 import random
 
-from deckland.bench import (
+from deckland.graph.bench import (
     LOOP_PERIOD_S,
     build_report,
     cpu_percent,

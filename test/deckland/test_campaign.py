@@ -5,10 +5,10 @@ import math
 import os
 
 from deck_simulator.scenario import load_scenario
-from deckland.backends import CampaignError, LocalPool, run_chunk
-from deckland.campaign import format_table, run_campaign, run_seed, summarize
+from deckland.batch.backends import CampaignError, LocalPool, run_chunk
+from deckland.batch.campaign import format_table, run_campaign, run_seed, summarize
+from deckland.batch.runner import RunConfig, RunResult, run_landing
 from deckland.cli import main as cli_main
-from deckland.runner import RunConfig, RunResult, run_landing
 import pytest
 
 

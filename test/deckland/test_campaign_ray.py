@@ -15,12 +15,11 @@ if importlib.util.find_spec('ray') is None:
     pytest.skip('ray is not installed (make setup-ray): Ray backend not tested',
                 allow_module_level=True)
 
-from deckland.backends import CampaignError, RayBackend, run_chunk
-from deckland.campaign import HOW_RUN_KEYS, run_campaign
-from deckland.runner import RunConfig
-from deckland.tune import sweep
-
-from deckland import accel
+from deckland.batch import accel
+from deckland.batch.backends import CampaignError, RayBackend, run_chunk
+from deckland.batch.campaign import HOW_RUN_KEYS, run_campaign
+from deckland.batch.runner import RunConfig
+from deckland.batch.tune import sweep
 
 
 @pytest.fixture(scope='module')

@@ -1,5 +1,5 @@
-"""deckland.orchestrator with real child processes: crash reports, respawn limit and back-off,
-fault-injected kills, shutdown escalation, and parameters that stay data.
+"""deckland.graph.orchestrator with real child processes: crash reports, respawn limit and
+back-off, fault-injected kills, shutdown escalation, and parameters that stay data.
 
 The children are tiny throw-away packages written to ``tmp_path`` (on the children's
 PYTHONPATH), so every behaviour is checked on real processes and real signals.
@@ -13,7 +13,13 @@ import sys
 import textwrap
 import time
 
-from deckland.orchestrator import NodeSpec, Orchestrator, _ros_value, describe_status, load_graph
+from deckland.graph.orchestrator import (
+    NodeSpec,
+    Orchestrator,
+    _ros_value,
+    describe_status,
+    load_graph,
+)
 import pytest
 
 pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss

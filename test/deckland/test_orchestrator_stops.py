@@ -13,8 +13,8 @@ import signal
 import textwrap
 import time
 
-from deckland.composed import ComposedSpec, component_table, compose, node_class, ros_args
-from deckland.orchestrator import NodeSpec, Orchestrator, members
+from deckland.graph.composed import ComposedSpec, component_table, compose, node_class, ros_args
+from deckland.graph.orchestrator import NodeSpec, Orchestrator, members
 import pytest
 
 pytestmark = pytest.mark.ros
@@ -130,7 +130,7 @@ def test_compose_keeps_the_per_process_arguments_and_the_simulator_apart():
     assert row_est == {'name': 'est', 'package': 'apron_estimator', 'module': 'node',
                        'ros_args': ros_args(est)}
     cmd = nodes[1].command()
-    assert cmd[1] == '-c' and 'deckland.composed import main' in cmd[2] and len(cmd) == 4
+    assert cmd[1] == '-c' and 'deckland.graph.composed import main' in cmd[2] and len(cmd) == 4
     with pytest.raises(ValueError, match='components must not be empty'):
         ComposedSpec(name='stack', package='deckland', module='composed')
 

@@ -1,4 +1,4 @@
-"""Fast-path rewrites of the closed-loop cores keep their meaning (deckland.perf task)."""
+"""Fast-path rewrites of the closed-loop cores keep their meaning (deckland.batch.perf task)."""
 
 import math
 import random
@@ -6,7 +6,7 @@ import random
 from apron_estimator.horizontal import AccelIntegrator
 from apron_estimator.vertical import VerticalFilter
 from deck_simulator.sensors import Gps, GpsParams, Imu, ImuParams, normal_stream
-from deckland.perf import measure_realtime_factor
+from deckland.batch.perf import measure_realtime_factor
 from landing_planner.planner import _finite
 import pytest
 

@@ -7,7 +7,8 @@ from pathlib import Path
 import random
 import struct
 
-from deckland.runner import TRACE_FIELDS, RunConfig, run_landing
+from deckland.batch.runner import TRACE_FIELDS, RunConfig, run_landing
+from deckland.ros import bag
 from deckland_common.contract import ApronState, VerticalState
 from deckland_common.frames import euler_to_quaternion, rot_body_to_world
 from deckland_common.messages import fill_apron_state
@@ -18,7 +19,7 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Range
 from std_msgs.msg import String
 
-from deckland import bag, cli, plot
+from deckland import cli, plot
 from deckland_interfaces.msg import AltitudeState
 from deckland_interfaces.msg import ApronState as ApronStateMsg
 

@@ -6,6 +6,7 @@ from pathlib import Path
 import random
 import shutil
 
+from deckland.ros import bag, rosio, topic
 from geometry_msgs.msg import Point32, PoseStamped
 from mcap.reader import make_reader
 from nav_msgs.msg import Odometry
@@ -22,8 +23,6 @@ from rosbags.rosbag2.metadata import parse_qos
 from sensor_msgs.msg import ChannelFloat32, PointCloud, Range
 from std_msgs.msg import String
 import yaml
-
-from deckland import bag, rosio, topic
 
 
 def qos(rel, dur, depth=10):

@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 
+from deckland.ros import bag, rosio, topic
 from geometry_msgs.msg import PoseStamped
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, make_reader
@@ -28,8 +29,6 @@ from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Range
 from std_msgs.msg import String
 import yaml
-
-from deckland import bag, rosio, topic
 
 pytestmark = [pytest.mark.ros]
 
@@ -218,7 +217,7 @@ def test_record_play_record_round_trip(ros_context, tmp_path):
 
 def start_recorder(out_dir, *topics):
     return subprocess.Popen(
-        [sys.executable, '-m', 'deckland.bag', 'record', '-o', str(out_dir), *topics],
+        [sys.executable, '-m', 'deckland.ros.bag', 'record', '-o', str(out_dir), *topics],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=dict(os.environ))
 
 

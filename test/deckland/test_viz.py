@@ -13,10 +13,9 @@ import subprocess
 import sys
 import time
 
-from conftest import isolated_env
+from deckland.ros import rosio
 import pytest
-
-from deckland import rosio
+from rostest import isolated_env
 
 pytestmark = pytest.mark.ros
 

@@ -1,14 +1,14 @@
-"""The live view's scene (deckland.vizscene, deckland.viz conversions): geometry against the
-camera model and the covariance, the SceneUpdate, inputs decoded from messages, the PNG."""
+"""The live view's scene (deckland.graph.vizscene, deckland.graph.viz conversions): geometry
+against the camera model and the covariance, the SceneUpdate, inputs decoded from messages,
+the PNG."""
 
 import math
 
 from apron_estimator.camera import CameraParams
-from deckland.vizscene import SceneState, build_scene
+from deckland.graph import viz, vizscene
+from deckland.graph.vizscene import SceneState, build_scene
 from deckland_common.frames import euler_to_quaternion
 import pytest
-
-from deckland import viz, vizscene
 
 
 def test_level_camera_footprint_is_the_fov_rectangle_on_the_deck():
@@ -174,7 +174,7 @@ def _resolve(store, msgtype, fields):
 def test_layout_shows_the_scene_figures_and_mode_on_real_fields():
     import json
 
-    from deckland import rosio
+    from deckland.ros import rosio
     cfg = json.loads(LAYOUT.read_text())['configById']
     assert cfg['3D!scene']['topics'] == {viz.SCENE_TOPIC: {'visible': True}}
     assert cfg['StateTransitions!mode']['paths'][0]['value'] == '/planner/status.mode'

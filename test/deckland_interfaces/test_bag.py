@@ -7,12 +7,12 @@ import json
 from pathlib import Path
 import sys
 
+from deckland.ros import bag, rosio
 from mcap.reader import make_reader
 from rclpy.serialization import serialize_message
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from deckland import bag, rosio
 from deckland_interfaces.msg import ApronState, PlannerStatus, Rival
 
 SHARE = Path(sys.prefix) / 'share' / 'deckland_interfaces' / 'msg'

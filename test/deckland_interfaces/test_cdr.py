@@ -10,11 +10,10 @@ import importlib
 import math
 import random
 
+from deckland.ros import msgtypes
 import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
-
-from deckland import msgtypes
 
 STORE = msgtypes.typestore()
 NAMES = sorted(n.rsplit('/', 1)[1] for n in STORE.types

@@ -8,9 +8,8 @@ from pathlib import Path
 import re
 import sys
 
+from deckland.ros import msgtypes
 import pytest
-
-from deckland import msgtypes
 
 ROOT = Path(__file__).resolve().parents[2]
 MSG_DIR = ROOT / 'src' / 'deckland_interfaces' / 'msg'

@@ -9,13 +9,13 @@ import random
 import threading
 import time
 
+from deckland.ros import bag, topic
 import pytest
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 import yaml
 
-from deckland import bag, topic
 from deckland_interfaces.msg import ApronState, Rival
 
 pytestmark = [pytest.mark.ros]

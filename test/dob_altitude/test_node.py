@@ -10,8 +10,8 @@ import math
 import threading
 import time
 
-from conftest import wait_for
 import pytest
+from rostest import wait_for
 
 pytestmark = pytest.mark.ros
 

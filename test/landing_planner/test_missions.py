@@ -8,7 +8,7 @@ ship it has tracked (the Step 14 refusal), whatever else happens.
 from __future__ import annotations
 
 from deck_simulator.scenario import load_scenario
-from deckland.runner import RunConfig, run_landing
+from deckland.batch.runner import RunConfig, run_landing
 import pytest
 
 

@@ -16,8 +16,8 @@ import sys
 import threading
 import time
 
-from conftest import wait_for
 import pytest
+from rostest import wait_for
 
 pytestmark = pytest.mark.ros
 

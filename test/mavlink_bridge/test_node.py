@@ -6,8 +6,8 @@ import socket
 import threading
 import time
 
-from conftest import wait_for
 import pytest
+from rostest import wait_for
 
 pytestmark = pytest.mark.ros
 

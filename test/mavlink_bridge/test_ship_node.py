@@ -8,10 +8,10 @@ import socket
 import time
 
 from apron_estimator.deck import telemetry_from_odometry
-from conftest import free_udp_port, wait_for
 from deck_simulator.ship_link import enu_to_geodetic
 from mavlink_bridge.ship import DeckOdom
 import pytest
+from rostest import free_udp_port, wait_for
 
 ORIGIN = (54.32, 10.15, 0.0)
 

@@ -12,7 +12,7 @@ import math
 from deck_simulator.outcome import classify
 from deck_simulator.scenario import builtin_names, load_scenario
 from deck_simulator.world import World
-from deckland.runner import RunConfig, RunResult, run_landing
+from deckland.batch.runner import RunConfig, RunResult, run_landing
 import pytest
 
 SEEDS = (100000, 100001, 100002)

@@ -36,7 +36,7 @@ def _report(gold, recorded, make=None, meta=None):
 
 
 def test_fixture_is_small_complete_and_has_explicit_qos(gold):
-    from deckland.bag import bag_info
+    from deckland.ros.bag import bag_info
 
     size = sum(p.stat().st_size for p in BAG.iterdir())
     assert size <= golden.MAX_BAG_BYTES

@@ -13,7 +13,6 @@ import subprocess
 import sys
 from types import SimpleNamespace
 
-from conftest import isolated_env
 from deck_simulator.scenario import load_scenario
 from deckland.sitl import SITL_AUTOPILOTS, SitlNotFoundError, SitlStartError
 from deckland.sitl.ardupilot import (
@@ -28,6 +27,7 @@ from deckland.sitl.ardupilot import (
     require_ardupilot,
 )
 import pytest
+from rostest import isolated_env
 
 try:
     AP_BIN = find_ardupilot()

@@ -14,7 +14,6 @@ import pathlib
 import subprocess
 import sys
 
-from conftest import isolated_env
 from deck_simulator.faults import FaultSet
 from deck_simulator.link import ImpairedLink
 from deck_simulator.loop import SimulationLoop
@@ -25,6 +24,7 @@ from deckland.sitl.campaign import compare, failsafe_check, outcome_from_report,
 from deckland.sitl.mission import OBL_LAND, OBL_RETURN, mission_params, wire_faults
 from deckland.sitl.px4 import ZERO_FLOAT, Px4NotFoundError, find_px4, px4_param_text
 import pytest
+from rostest import isolated_env
 from test_sitl_px4_hil import FakePx4
 
 try:

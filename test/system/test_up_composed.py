@@ -8,9 +8,9 @@ import pathlib
 import subprocess
 import sys
 
-from conftest import isolated_env
-from deckland.bag import bag_info
+from deckland.ros.bag import bag_info
 import pytest
+from rostest import isolated_env
 
 pytestmark = pytest.mark.ros
 
@@ -43,9 +43,9 @@ def graph_view(composed: bool, env: dict) -> dict:
     import io
     import time
 
-    from deckland.composed import compose
-    from deckland.orchestrator import Orchestrator, load_graph
-    from deckland.up import UdpReservations, default_graph_path, graph_substitutions
+    from deckland.graph.composed import compose
+    from deckland.graph.orchestrator import Orchestrator, load_graph
+    from deckland.graph.up import UdpReservations, default_graph_path, graph_substitutions
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 

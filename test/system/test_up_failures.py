@@ -11,9 +11,9 @@ import subprocess
 import sys
 import time
 
-from conftest import isolated_env
-from deckland.bag import bag_info, is_recording, needs_reindex
+from deckland.ros.bag import bag_info, is_recording, needs_reindex
 import pytest
+from rostest import isolated_env
 
 pytestmark = pytest.mark.ros
 

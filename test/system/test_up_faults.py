@@ -11,10 +11,10 @@ import pathlib
 import subprocess
 import sys
 
-from conftest import isolated_env
 from deck_simulator.scenario import load_scenario
-from deckland.bag import bag_info
+from deckland.ros.bag import bag_info
 import pytest
+from rostest import isolated_env
 
 pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
 

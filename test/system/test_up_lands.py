@@ -10,8 +10,8 @@ import subprocess
 import sys
 import time
 
-from conftest import isolated_env
 import pytest
+from rostest import isolated_env
 
 pytestmark = pytest.mark.ros
 

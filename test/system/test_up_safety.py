@@ -9,9 +9,9 @@ import math
 import pathlib
 import tokenize
 
-from deckland.mission_report import EXIT_CODES, failsafe_fields, summary_lines
-from deckland.orchestrator import load_graph
-from deckland.up import (
+from deckland.graph.mission_report import EXIT_CODES, failsafe_fields, summary_lines
+from deckland.graph.orchestrator import load_graph
+from deckland.graph.up import (
     UdpReservations,
     default_graph_path,
     graph_substitutions,
@@ -227,7 +227,7 @@ def test_the_failsafe_is_the_first_mode_out_of_offboard_else_the_emulators_recor
 def test_kill_schedule_kills_each_fault_once_and_releases_at_its_end():
     from types import SimpleNamespace as F
 
-    from deckland.mission_report import KillSchedule
+    from deckland.graph.mission_report import KillSchedule
 
     sched = KillSchedule([F(node='b', start_s=3.0, end_s=math.inf),
                           F(node='a', start_s=1.0, end_s=2.5)])
@@ -241,7 +241,7 @@ def test_kill_schedule_kills_each_fault_once_and_releases_at_its_end():
 
 
 def test_an_outcome_of_another_simulation_is_not_ours():
-    from deckland.mission_report import parse_outcome
+    from deckland.graph.mission_report import parse_outcome
 
     mine = {'scenario': 'paper', 'seed': 3}
     assert parse_outcome('{"scenario": "paper", "seed": 3, "success": true}', mine) == (

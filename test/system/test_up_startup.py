@@ -10,9 +10,9 @@ import textwrap
 import time
 
 from deck_simulator.transport import make_mavlink_link
-from deckland.mission_report import summary_lines
-from deckland.orchestrator import NodeSpec, Orchestrator
-from deckland.up import UdpReservations, graph_substitutions
+from deckland.graph.mission_report import summary_lines
+from deckland.graph.orchestrator import NodeSpec, Orchestrator
+from deckland.graph.up import UdpReservations, graph_substitutions
 from deckland_common.readiness import parse_ready_line, ready_line
 from pixy_driver.protocol import encode_frame
 import pytest

@@ -9,8 +9,8 @@ import sys
 os.environ['DECKLAND_CORES'] = 'python'
 
 import apron_estimator.deck as deck
-from deckland.campaign import run_campaign
-from deckland.runner import RunConfig
+from deckland.batch.campaign import run_campaign
+from deckland.batch.runner import RunConfig
 
 variant, scen, runs = sys.argv[1], sys.argv[2], int(sys.argv[3])
 if variant == 'before':

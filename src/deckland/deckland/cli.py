@@ -12,15 +12,15 @@ import sys
 
 #: Tool modules, in the order their subcommands are listed in ``deckland --help``.
 TOOL_MODULES = (
-    'deckland.campaign',
-    'deckland.up',
-    'deckland.topic',
-    'deckland.bag',
+    'deckland.batch.campaign',
+    'deckland.graph.up',
+    'deckland.ros.topic',
+    'deckland.ros.bag',
     'deckland.plot',
-    'deckland.bench',
-    'deckland.viz',
-    'deckland.tune',
-    'deckland.accel',
+    'deckland.graph.bench',
+    'deckland.graph.viz',
+    'deckland.batch.tune',
+    'deckland.batch.accel',
 )
 
 #: Subcommands that fly the in-process simulator: ``--cores`` picks Python or compiled cores.
@@ -41,8 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     # before build_parser: the tool modules import the cores, and a core module can only be
-    # loaded compiled if nothing imported it yet (deckland.accel)
-    from deckland.accel import select_from_argv
+    # loaded compiled if nothing imported it yet (deckland.batch.accel)
+    from deckland.batch.accel import select_from_argv
     select_from_argv(argv, BATCH_COMMANDS)
     parser = build_parser()
     args = parser.parse_args(argv)

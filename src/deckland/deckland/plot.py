@@ -3,7 +3,7 @@
 Two sources feed one plotting path:
 
 * a rosbag2 bag recorded from the ROS graph (docs/interfaces.md): :func:`series_from_bag`;
-* the CSV that ``deckland sim --csv`` writes (columns = ``deckland.runner.TRACE_FIELDS``):
+* the CSV that ``deckland sim --csv`` writes (columns = ``deckland.batch.runner.TRACE_FIELDS``):
   :func:`series_from_csv`, or the in-memory ``RunResult.trace`` dict: :func:`series_from_trace`.
 
 Each returns a :class:`LandingSeries` (named time series on one time axis, seconds from the
@@ -282,8 +282,8 @@ def series_from_bag(bag_dir: str | os.PathLike[str], namespace: str | None = Non
     (topics without a header keep the log time, so only use it when both clocks agree).
     Raises :class:`PlotError` if the bag cannot be read or holds none of the known topics.
     """
-    from deckland import bag as bagmod
-    from deckland import rosio
+    from deckland.ros import bag as bagmod
+    from deckland.ros import rosio
 
     if time_source not in ('log', 'header'):
         raise ValueError(f"time_source must be 'log' or 'header', got {time_source!r}")

@@ -1,9 +1,9 @@
 """``deckland campaign --autopilot NAME``: seeded missions through a registered firmware.
 
-Run ``i`` flies seed ``S * 100000 + i`` (:func:`deckland.campaign.run_seed`) as one ``deckland
-up --autopilot NAME`` mission in its own process (its own firmware, working directory and
-graph), in real time: the graph runs on the wall clock, so the world cannot go faster than
-it. The report is the in-process campaign's JSON (:func:`deckland.campaign.summarize`) plus
+Run ``i`` flies seed ``S * 100000 + i`` (:func:`deckland.batch.campaign.run_seed`) as one
+``deckland up --autopilot NAME`` mission in its own process (its own firmware, working directory
+and graph), in real time: the graph runs on the wall clock, so the world cannot go faster than
+it. The report is the in-process campaign's JSON (:func:`deckland.batch.campaign.summarize`) plus
 ``autopilot``, ``per_run`` (each seed through PX4 and in-process, side by side),
 ``in_process`` (the in-process summary of the same seeds), ``comparison`` (PX4 / in-process
 ratios), ``failsafe_check`` for link faults, ``attempts`` and ``machine`` (load, niceness).
@@ -153,8 +153,8 @@ def run_sitl_campaign(args) -> dict[str, Any]:
     """The campaign (see the module docstring); progress lines on stderr."""
     from deck_simulator.scenario import load_scenario
 
-    from deckland.campaign import run_seed, summarize
-    from deckland.runner import RunConfig, run_landing
+    from deckland.batch.campaign import run_seed, summarize
+    from deckland.batch.runner import RunConfig, run_landing
     from deckland.sitl import SITL_AUTOPILOTS
 
     backend = SITL_AUTOPILOTS[args.autopilot]
@@ -241,7 +241,7 @@ def _hover_source(firmware: dict[str, Any] | None) -> str:
 def cmd_sitl_campaign(args) -> int:
     """``deckland campaign --autopilot NAME`` (a registered firmware): run, print, write
     ``--out``."""
-    from deckland.campaign import format_table
+    from deckland.batch.campaign import format_table
     from deckland.sitl import SITL_AUTOPILOTS, SitlNotFoundError
 
     backend = SITL_AUTOPILOTS[args.autopilot]

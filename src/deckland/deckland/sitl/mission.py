@@ -431,7 +431,7 @@ def operator_take_off(px4: Px4Mission, monitor, log, abort=None) -> tuple[bool, 
     """The operator's take-off with PX4 (:meth:`Px4Mission.take_off`), the bridge's hover
     thrust in PX4's loiter, and the planner's take-off (its IDLE holds the height it latched
     on the ground; TAKEOFF resets the reference to the height flown now and holds the
-    approach height). ``monitor``: :class:`deckland.up.MissionMonitor`; ``log(text)``."""
+    approach height). ``monitor``: :class:`deckland.graph.up.MissionMonitor`; ``log(text)``."""
     name = px4.NAME
     log(f"{name}: EKF origin, arm, take off ({name}'s own take-off)")
     ok, msg = px4.take_off(abort=abort)

@@ -19,11 +19,11 @@ import pathlib
 import sys
 from typing import Any
 
-from deckland import backends
-from deckland.accel import add_cores_argument
-from deckland.backends import CampaignError, LocalPool, RayBackend
-from deckland.campaign import run_campaign
-from deckland.runner import RunConfig
+from deckland.batch import backends
+from deckland.batch.accel import add_cores_argument
+from deckland.batch.backends import CampaignError, LocalPool, RayBackend
+from deckland.batch.campaign import run_campaign
+from deckland.batch.runner import RunConfig
 
 #: Multipliers applied to each of the three gains (3 × 3 × 3 = 27 points per controller).
 SCALES = (0.6, 1.0, 1.6)

@@ -18,7 +18,7 @@ import json
 import sys
 from typing import Any
 
-from deckland.orchestrator import NodeSpec, launcher_code
+from deckland.graph.orchestrator import NodeSpec, launcher_code
 
 #: name of the composed process in the orchestrator's log and report
 COMPOSED_NAME = 'stack'
@@ -37,7 +37,7 @@ class ComposedSpec(NodeSpec):
 
     def command(self, python: str = sys.executable) -> list[str]:
         """argv: this module's :func:`main` with one JSON argument (data, no shell)."""
-        code = launcher_code('deckland.composed', 'main(sys.argv[1:])')
+        code = launcher_code('deckland.graph.composed', 'main(sys.argv[1:])')
         return [python, '-c', code, json.dumps(component_table(self.components))]
 
 

@@ -1,6 +1,6 @@
 """Compiled cores for batch runs: the same Python sources, compiled by mypyc.
 
-The in-process simulator (`deckland campaign|sim|tune`, `python -m deckland.perf`) spends its
+The in-process simulator (`deckland campaign|sim|tune`, `python -m deckland.batch.perf`) spends its
 time in the flight cores and the simulator's physics. mypyc compiles those modules, unchanged,
 into C extensions; a campaign that loads them flies the same code about three times faster.
 Nothing is compiled for the ROS nodes, which always run the Python sources.
@@ -99,9 +99,9 @@ def accel_dir() -> pathlib.Path:
     if env:
         return pathlib.Path(env)
     here = pathlib.Path(__file__).resolve()
-    # editable install: <root>/src/deckland/deckland/accel.py
-    if len(here.parents) > 3 and here.parents[2].name == 'src':
-        return here.parents[3] / 'build' / 'accel'
+    # editable install: <root>/src/deckland/deckland/batch/accel.py
+    if len(here.parents) > 4 and here.parents[3].name == 'src':
+        return here.parents[4] / 'build' / 'accel'
     return pathlib.Path.home() / '.cache' / 'deckland' / 'accel'
 
 

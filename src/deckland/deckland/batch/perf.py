@@ -1,10 +1,10 @@
 """Benchmark of the in-process closed loop: realtime factor of seeded landings in one process.
 
-``python -m deckland.perf [--scenario paper] [--runs 20] [--seed 1] [--controller dob]
+``python -m deckland.batch.perf [--scenario paper] [--runs 20] [--seed 1] [--controller dob]
 [--profile]`` prints a JSON object. The runs are the same seeds a campaign flies
-(``deckland.campaign.run_seed``), flown one after another in this process (no pool), so the figure
-is the realtime factor of one worker. The machine may be shared: compare ratios measured back to
-back, not absolute figures from different days.
+(``deckland.batch.campaign.run_seed``), flown one after another in this process (no pool), so
+the figure is the realtime factor of one worker. The machine may be shared: compare ratios
+measured back to back, not absolute figures from different days.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import sys
 import time
 from typing import Any
 
-from deckland import accel
+from deckland.batch import accel
 
 
 def measure_realtime_factor(scenario: str = 'paper', runs: int = 20, seed: int = 1,
@@ -31,8 +31,8 @@ def measure_realtime_factor(scenario: str = 'paper', runs: int = 20, seed: int =
     """
     from deck_simulator.scenario import load_scenario
 
-    from deckland.campaign import run_seed
-    from deckland.runner import RunConfig, run_landing
+    from deckland.batch.campaign import run_seed
+    from deckland.batch.runner import RunConfig, run_landing
 
     if runs < 1:
         raise ValueError(f'runs must be >= 1, got {runs}')
@@ -66,8 +66,8 @@ def measure_realtime_factor(scenario: str = 'paper', runs: int = 20, seed: int =
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m deckland.perf', description=__doc__.split(
-        '\n')[0])
+    parser = argparse.ArgumentParser(prog='python -m deckland.batch.perf',
+                                     description=__doc__.split('\n')[0])
     parser.add_argument('--scenario', default='paper')
     parser.add_argument('--runs', type=int, default=20)
     parser.add_argument('--seed', type=int, default=1)

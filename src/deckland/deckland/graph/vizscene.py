@@ -1,11 +1,11 @@
 """The 3-D scene of the live view as plain geometry (pure: no rclpy, no foxglove).
 
 :class:`SceneState` holds the latest value of each input (decoded from the graph's topics by
-:mod:`deckland.viz`, or from a bag for a snapshot); :func:`build_scene` turns it into
+:mod:`deckland.graph.viz`, or from a bag for a snapshot); :func:`build_scene` turns it into
 :class:`Item` s in ``map`` (ENU): the deck plane with its tilt and pad outline, the beacon, the
 vehicle, the estimated apron with its 2-σ covariance ellipse, the planner setpoint and the
-camera footprint on the deck plane. :mod:`deckland.viz` converts the items to a Foxglove
-``SceneUpdate``; :func:`deckland.viz.render_png` draws the same items with matplotlib.
+camera footprint on the deck plane. :mod:`deckland.graph.viz` converts the items to a Foxglove
+``SceneUpdate``; :func:`deckland.graph.viz.render_png` draws the same items with matplotlib.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 
 :class:`LiveView` runs a foxglove-sdk WebSocket server (loopback by default) beside a node of
 its own: every topic of the graph is forwarded as it arrives, CDR bytes untouched, on a
-channel with its ``ros2msg`` schema (:func:`deckland.rosio.message_definition`), and a
-``SceneUpdate`` (:mod:`deckland.vizscene`) goes out on :data:`SCENE_TOPIC` at ``rate_hz``.
+channel with its ``ros2msg`` schema (:func:`deckland.ros.rosio.message_definition`), and a
+``SceneUpdate`` (:mod:`deckland.graph.vizscene`) goes out on :data:`SCENE_TOPIC` at ``rate_hz``.
 :func:`render_png` draws the same scene from a recorded bag with matplotlib. How to open it
 in Foxglove: ``src/deckland/README-viz.md``.
 """
@@ -17,8 +17,15 @@ import threading
 import time
 from typing import Any
 
-from deckland import rosio
-from deckland.vizscene import SCENE_INPUTS, Item, SceneState, apply, build_scene, relative_name
+from deckland.graph.vizscene import (
+    SCENE_INPUTS,
+    Item,
+    SceneState,
+    apply,
+    build_scene,
+    relative_name,
+)
+from deckland.ros import rosio
 
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
@@ -236,7 +243,7 @@ def scene_from_bag(bag_dir: str, at_s: float | None = None,
                    pad_size_m: tuple[float, float] | None = None) -> tuple[SceneState, float]:
     """The scene state at ``at_s`` seconds after the bag's first message (default: the
     midpoint) from the latest message of each scene input before it; returns (state, t)."""
-    from deckland import bag
+    from deckland.ros import bag
 
     store = rosio.typestore()
     scene = SceneState() if pad_size_m is None else SceneState(pad_size_m=pad_size_m)
@@ -268,7 +275,7 @@ def render_png(scene: SceneState, out: str, title: str = '') -> None:
     import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from deckland.vizscene import rectangle
+    from deckland.graph.vizscene import rectangle
 
     fig = plt.figure(figsize=(8, 6.5))
     ax = fig.add_subplot(projection='3d')

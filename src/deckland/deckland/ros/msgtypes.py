@@ -18,7 +18,7 @@ from typing import Any
 PACKAGE = 'deckland_interfaces'
 
 #: ``src/deckland_interfaces/msg`` of the source tree this module sits in (editable install).
-SOURCE_MSG_DIR = Path(__file__).resolve().parents[2] / PACKAGE / 'msg'
+SOURCE_MSG_DIR = Path(__file__).resolve().parents[3] / PACKAGE / 'msg'
 
 
 def candidate_dirs(env: dict[str, str] | None = None) -> list[Path]:

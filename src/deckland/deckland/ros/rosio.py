@@ -217,7 +217,7 @@ def publisher_qos_from_offered(offered: list[Any], depth: int = 10) -> Any:
 def typestore() -> Any:
     """The rosbags typestore for Jazzy plus deckland_interfaces (message definitions and
     RIHS01 hashes)."""
-    from deckland import msgtypes
+    from deckland.ros import msgtypes
 
     return msgtypes.typestore()
 

@@ -1,12 +1,13 @@
 """``deckland bench latency``: end-to-end latency, loop jitter and CPU of the simulated graph.
 
-The graph is started as ``deckland up`` starts it (:func:`deckland.up.graph_substitutions`,
-:func:`deckland.orchestrator.load_graph`, :class:`deckland.orchestrator.Orchestrator`), with one
-addition: a UDP tap process sits on loopback between ``mavlink_bridge`` and the simulator's
-autopilot (the bridge's ``connection`` points at the tap, the tap relays both ways). The tap
-timestamps every SET_ATTITUDE_TARGET on arrival (``time.time()``, the clock ROS stamps use) and
-keeps its ``time_boot_ms``, which the bridge fills with the command's source stamp in ms mod
-2^32 (the small, marked hook in ``mavlink_bridge/node.py``).
+The graph is started as ``deckland up`` starts it (:func:`deckland.graph.up.graph_substitutions`,
+:func:`deckland.graph.orchestrator.load_graph`,
+:class:`deckland.graph.orchestrator.Orchestrator`), with one addition: a UDP tap process sits on
+loopback between ``mavlink_bridge`` and the simulator's autopilot (the bridge's ``connection``
+points at the tap, the tap relays both ways). The tap timestamps every SET_ATTITUDE_TARGET on
+arrival (``time.time()``, the clock ROS stamps use) and keeps its ``time_boot_ms``, which the
+bridge fills with the command's source stamp in ms mod 2^32 (the small, marked hook in
+``mavlink_bridge/node.py``).
 
 Stamp chain from a setpoint back to its camera frame::
 
@@ -504,7 +505,7 @@ def _url_port(url: str) -> int:
 
 def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, dict]:
     """Start the graph with the tap, measure for ``args.duration`` s, return (status, report)."""
-    from deckland.up import UdpReservations
+    from deckland.graph.up import UdpReservations
 
     udp = UdpReservations()
     try:
@@ -514,8 +515,8 @@ def run_latency_bench(args: argparse.Namespace, out=sys.stdout) -> tuple[int, di
 
 
 def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
-    from deckland.orchestrator import Orchestrator, load_graph
-    from deckland.up import MissionMonitor, default_graph_path, graph_substitutions
+    from deckland.graph.orchestrator import Orchestrator, load_graph
+    from deckland.graph.up import MissionMonitor, default_graph_path, graph_substitutions
 
     subs = graph_substitutions(types.SimpleNamespace(
         scenario=args.scenario, seed=args.seed, hardware=False, mavlink=None, pixy_port=None,
@@ -547,11 +548,11 @@ def _run_latency_bench(args: argparse.Namespace, udp, out) -> tuple[int, dict]:
     with open(log_path, 'w') as log:
         nodes = graph['nodes']
         if getattr(args, 'composed', False):
-            from deckland.composed import compose
+            from deckland.graph.composed import compose
             nodes = compose(nodes)
         orch = Orchestrator(nodes, out=log, stop_timeout_s=5.0, pass_fds=udp.fds())
         tap = subprocess.Popen(
-            [sys.executable, '-c', 'import sys; from deckland.bench import tap_main; '
+            [sys.executable, '-c', 'import sys; from deckland.graph.bench import tap_main; '
              'sys.exit(tap_main(sys.argv[1:]))', str(tap_fd), str(sim_port), tap_out],
             stdin=subprocess.DEVNULL, start_new_session=True, pass_fds=(tap_fd,))
         monitor = None
@@ -755,7 +756,7 @@ def register(sub) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m deckland.bench latency ...`` (the same as ``deckland bench latency``)."""
+    """``python -m deckland.graph.bench latency ...`` (the same as ``deckland bench latency``)."""
     parser = argparse.ArgumentParser(prog='deckland')
     sub = parser.add_subparsers(dest='command')
     register(sub)

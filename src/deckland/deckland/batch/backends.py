@@ -2,7 +2,7 @@
 
 A campaign is cut into chunks of consecutive seeds (`Chunk`); a backend calls `run_chunk` on
 each chunk wherever its workers are and yields the `ChunkResult`s as chunks finish. Chunking,
-ordering and the report belong to `deckland.campaign`, the same for every backend.
+ordering and the report belong to `deckland.batch.campaign`, the same for every backend.
 `run_chunk` loads the compiled cores first when the driver flies them (`accel.worker_init`,
 a no-op after the first chunk in a worker), so this module imports no core at import time.
 Ray is optional and imported only by `RayBackend` (see the deckland README, "Campaigns on a
@@ -22,10 +22,10 @@ import socket
 import sys
 from typing import TYPE_CHECKING, Any
 
-from deckland import accel
+from deckland.batch import accel
 
 if TYPE_CHECKING:
-    from deckland.runner import RunResult
+    from deckland.batch.runner import RunResult
 
 BACKENDS = ('local', 'ray')
 
@@ -75,7 +75,7 @@ def _scenario(name: str, text: str | None) -> Any:
 def run_chunk(chunk: Chunk) -> ChunkResult:
     """Fly every seed of ``chunk`` (in this process) with the driver's cores."""
     accel.worker_init(chunk.accel_dir)
-    from deckland.runner import config_from_fields, run_landing
+    from deckland.batch.runner import config_from_fields, run_landing
     config = config_from_fields(chunk.config_fields)
     scenario = _scenario(chunk.scenario, chunk.scenario_yaml)
     results = [run_landing(scenario, seed, config) for seed in chunk.seeds]

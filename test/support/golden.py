@@ -1,6 +1,6 @@
 """Golden-bag regression (test tooling): record a reference ``paper`` landing, replay, compare.
 
-``python test/golden.py record DIR`` (``make golden``) flies one landing with the real node
+``python test/support/golden.py record DIR`` (``make golden``) flies one landing with the real node
 graph and writes a small rosbag2 MCAP bag plus ``DIR/golden.yaml``; regenerating it is
 deliberate. :func:`replay_cores` feeds the recorded inputs in bag order through the nodes'
 loop cores (``apron_estimator.loop``, ``landing_planner.loop``, ``dob_altitude.loop``), no
@@ -802,14 +802,14 @@ def record(out_dir: str | os.PathLike[str], scenario: str = DEFAULT_SCENARIO,
     flows). ``out_dir`` is replaced only if it is empty or an earlier golden bag.
     """
     _isolate_ros_domain()
-    from deckland.bag import Recorder
-    from deckland.orchestrator import Orchestrator, load_graph
-    from deckland.up import (
+    from deckland.graph.orchestrator import Orchestrator, load_graph
+    from deckland.graph.up import (
         MissionMonitor,
         UdpReservations,
         default_graph_path,
         graph_substitutions,
     )
+    from deckland.ros.bag import Recorder
 
     out = Path(out_dir)
     if out.exists() and any(out.iterdir()) and not (out / META_NAME).exists():
@@ -917,7 +917,7 @@ def trim(raw_dir: Path, out_dir: Path) -> tuple[int, int]:
     touchdown). Latched topics keep their messages from before the window (stamped at its
     start). Offered QoS profiles are copied explicitly. Returns the window (ns).
     """
-    from deckland.bag import BagWriter
+    from deckland.ros.bag import BagWriter
     from rosbags.highlevel import AnyReader
 
     keep = set(INPUT_TOPICS) | set(OUTPUT_TOPICS)
@@ -962,7 +962,7 @@ def shifted_copy(bag_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str
     ``std_msgs/Bool`` on :data:`GATE_TOPIC` at the first message's time: a player started with
     ``--wait-subscribers`` then starts the moment something subscribes to it.
     """
-    from deckland.bag import BagWriter
+    from deckland.ros.bag import BagWriter
     from rosbags.highlevel import AnyReader
 
     wanted = set(topics)
@@ -974,7 +974,7 @@ def shifted_copy(bag_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str
             for c in conns:
                 writer.add_topic(c.topic, c.msgtype, list(c.ext.offered_qos_profiles))
             if gate:
-                from deckland import rosio
+                from deckland.ros import rosio
 
                 writer.add_topic(GATE_TOPIC, 'std_msgs/msg/Bool', [rosio.default_offered_qos()])
                 writer.write(GATE_TOPIC, reader.start_time + offset_ns, b'\x00\x01\x00\x00\x01')
@@ -1010,10 +1010,10 @@ def replay_nodes(bag_dir: str | os.PathLike[str], context: Any, executor: Any, *
     """Run the three nodes in ``context``, play the golden inputs into them, collect outputs.
 
     The estimator, planner and altitude nodes run as their own processes (as in the real
-    graph, ``deckland.orchestrator``; in-process they would share one GIL with the player and
+    graph, ``deckland.graph.orchestrator``; in-process they would share one GIL with the player and
     fall behind) with the recorded parameters, in this process's ROS domain; the collector
     node is added to ``executor`` (which must be spinning). The inputs are re-stamped to start
-    ``lead_s`` from now (:func:`shifted_copy`) and played with :func:`deckland.bag.play` at
+    ``lead_s`` from now (:func:`shifted_copy`) and played with :func:`deckland.ros.bag.play` at
     rate 1.0; ``planner/start_landing`` is called through its service at the recorded trigger
     time. Returns the outputs (stamps as published) and the offset (s) to subtract to compare
     them with the recording (:func:`compare` ``time_offset_s``).
@@ -1021,7 +1021,7 @@ def replay_nodes(bag_dir: str | os.PathLike[str], context: Any, executor: Any, *
 
     import io
 
-    from deckland.orchestrator import NodeSpec, Orchestrator
+    from deckland.graph.orchestrator import NodeSpec, Orchestrator
 
     golden = load(bag_dir)
     params = {name: dict(v or {}) for name, v in (golden.meta.get('parameters') or {}).items()}
@@ -1112,7 +1112,7 @@ def _replay_into(golden: Golden, bag_dir: Any, context: Any, executor: Any, orch
         # the player runs in its own process (``deckland bag play``: its own interpreter, so
         # the collector here cannot starve it) and waits for the gate's subscriber
         player = subprocess.Popen(
-            [sys.executable, '-m', 'deckland.bag', 'play', str(work / 'play'),
+            [sys.executable, '-m', 'deckland.ros.bag', 'play', str(work / 'play'),
              '--rate', '1.0', '--wait-subscribers', str(lead_s + 20.0)],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
@@ -1171,8 +1171,8 @@ def _replay_into(golden: Golden, bag_dir: Any, context: Any, executor: Any, orch
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python test/golden.py record DIR`` | ``check DIR`` (pure replay report)."""
-    parser = argparse.ArgumentParser(prog='python test/golden.py',
+    """``python test/support/golden.py record DIR`` | ``check DIR`` (pure replay report)."""
+    parser = argparse.ArgumentParser(prog='python test/support/golden.py',
                                      description='golden-bag regression (make golden)')
     sub = parser.add_subparsers(dest='verb', required=True)
     rec = sub.add_parser('record', help='fly the reference landing and (re)write DIR')

@@ -5,7 +5,7 @@ the Pixy (block bytes over UDP); the exit status is the landing's result and
 ``DIR/report.json`` holds the same outcome fields as a campaign run. Hardware
 (``--hardware --mavlink URL --pixy-port DEV``): the same graph without the simulator.
 
-Sequence: start every node (:class:`deckland.orchestrator.Orchestrator`), wait until the
+Sequence: start every node (:class:`deckland.graph.orchestrator.Orchestrator`), wait until the
 ``wait_for_topics`` of the graph flow, start the in-process bag recorder and wait until it
 receives them (so the bag covers the mission from the trigger on), request OFFBOARD, trigger
 ``planner/start_landing``, then watch: node exits are reported (and respawned if the graph says
@@ -33,14 +33,14 @@ import threading
 import time
 from typing import Any
 
-from deckland.mission_report import (
+from deckland.graph.mission_report import (
     EXIT_CODES,
     KillSchedule,
     failsafe_fields,
     parse_outcome,
     summary_lines,
 )
-from deckland.orchestrator import Orchestrator, describe_status, load_graph, members
+from deckland.graph.orchestrator import Orchestrator, describe_status, load_graph, members
 
 RUN_MARKERS = ('report.json', 'metadata.yaml')
 #: recorded hover before the landing trigger (s)
@@ -122,7 +122,7 @@ class MissionMonitor:
         """Count messages on each watched topic as soon as it appears (any type, raw)."""
         from deckland_common.ros_node import SENSOR_QOS
 
-        from deckland.rosio import import_message_type
+        from deckland.ros.rosio import import_message_type
 
         missing = [t for t in self.counts if t not in self._subs]
         if not missing:
@@ -207,7 +207,7 @@ def vehicle_of(args, scenario) -> Any:
     from deckland_common.contract import VehicleDescription
 
     if scenario is not None:
-        from deckland.runner import vehicle_description
+        from deckland.batch.runner import vehicle_description
         return vehicle_description(scenario)
     d = VehicleDescription()
     given = {'mass_kg': getattr(args, 'mass_kg', None),
@@ -344,7 +344,7 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
         for spec in nodes:
             spec.params_file = args.params
     if getattr(args, 'composed', False):
-        from deckland.composed import compose
+        from deckland.graph.composed import compose
         nodes = compose(nodes)
     orch = Orchestrator(nodes, stop_timeout_s=5.0, pass_fds=udp.fds())
 
@@ -574,7 +574,7 @@ def _start_px4(px4, nodes, orch: Orchestrator) -> str:
 
 def _start_view(args: Any, scenario: Any, monitor: MissionMonitor, orch: Orchestrator) -> Any:
     """The live Foxglove view (``--foxglove``) on the monitor's context."""
-    from deckland.viz import LiveView
+    from deckland.graph.viz import LiveView
 
     pad = None if scenario is None else tuple(scenario.apron.size_m)
     view = LiveView(host=args.foxglove_host, port=args.foxglove, pad_size_m=pad,
@@ -586,7 +586,7 @@ def _start_view(args: Any, scenario: Any, monitor: MissionMonitor, orch: Orchest
 def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: list[str],
                     orch: Orchestrator):
     """The in-process recorder on the monitor's context, subscribed before the trigger."""
-    from deckland.bag import Recorder
+    from deckland.ros.bag import Recorder
 
     recorder = Recorder(record, all_topics=True, context=monitor.context)
     recorder.start()
@@ -626,7 +626,7 @@ def _finish_report(report: dict[str, Any], args, hardware: bool, orch: Orchestra
     report['exit_status'] = code
     if record is not None:
         try:
-            from deckland.bag import bag_info
+            from deckland.ros.bag import bag_info
             info = bag_info(record)
             report['bag'] = {'path': str(record), 'messages': info.message_count,
                              'topics': len(info.topics), 'duration_s': round(info.duration_s, 3)}

@@ -1,7 +1,7 @@
 """``deckland topic``: ``list``, ``echo`` and ``hz`` on rclpy alone (no ros2cli here).
 
 Each command runs one node in its own rclpy context, waits for the topic to appear
-(``--timeout``), subscribes with QoS matched to the publishers (:mod:`deckland.rosio`) and
+(``--timeout``), subscribes with QoS matched to the publishers (:mod:`deckland.ros.rosio`) and
 exits cleanly on ``--count``/``--duration``, SIGINT or SIGTERM.
 
 The pure parts (YAML-ish rendering, CSV flattening, the rate statistics of :class:`RateMeter`)
@@ -24,7 +24,7 @@ from typing import Any, TextIO
 
 import yaml
 
-from deckland import rosio
+from deckland.ros import rosio
 
 # ============================================================================== pure helpers
 
@@ -309,7 +309,7 @@ def register(sub: Any) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m deckland.topic VERB ...`` (same as ``deckland topic VERB ...``)."""
+    """``python -m deckland.ros.topic VERB ...`` (same as ``deckland topic VERB ...``)."""
     parser = argparse.ArgumentParser(prog='deckland')
     register(parser.add_subparsers(dest='command'))
     args = parser.parse_args(['topic', *(sys.argv[1:] if argv is None else argv)])

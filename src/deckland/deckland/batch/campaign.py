@@ -16,9 +16,10 @@ The campaign JSON is a stable interface (other tools read it)::
 
 ``realtime_factor`` is simulated seconds per wall-clock second over the whole campaign (all
 workers); ``realtime_factor_per_worker`` divides it by the worker processes used. ``cores`` is
-``'compiled'`` when the mypyc build of the cores flew the runs (``deckland.accel``; identical
+``'compiled'`` when the mypyc build of the cores flew the runs (``deckland.batch.accel``; identical
 results), ``'python'`` otherwise. ``backend`` is where the runs flew (``'local'`` process pool or
-``'ray'``, `deckland.backends`); no key but `HOW_RUN_KEYS` depends on how the runs were flown.
+``'ray'``, `deckland.batch.backends`); no key but `HOW_RUN_KEYS` depends on how the runs were
+flown.
 
 ``outcomes`` counts the runs of each class (``deck_simulator.outcome.classify``,
 docs/failsafe.md); a failure's ``outcome`` is its class. ``success_ci95`` is the 95 % Wilson
@@ -46,9 +47,9 @@ from typing import Any
 
 from deckland_common.stats import percentile, wilson_interval
 
-from deckland import accel, backends
-from deckland.backends import CampaignError, Chunk, LocalPool, RayBackend
-from deckland.runner import CONTROLLERS, RunConfig, RunResult, run_landing
+from deckland.batch import accel, backends
+from deckland.batch.backends import CampaignError, Chunk, LocalPool, RayBackend
+from deckland.batch.runner import CONTROLLERS, RunConfig, RunResult, run_landing
 
 SEED_STRIDE = 100_000
 #: the run classes counted in a report (deck_simulator.outcome.classify)
@@ -153,7 +154,7 @@ def make_chunks(scenario: str, runs: int, seed: int, config: RunConfig,
     """The campaign's seeds in consecutive chunks, with what a worker needs to fly them."""
     from deck_simulator.scenario import builtin_names
     text = None if scenario in builtin_names() else pathlib.Path(scenario).read_text('utf-8')
-    from deckland.runner import config_fields
+    from deckland.batch.runner import config_fields
     blob = config_fields(config)
     seeds = [run_seed(seed, i) for i in range(runs)]
     return [Chunk(k, scenario, text, blob, tuple(seeds[i:i + size]),
