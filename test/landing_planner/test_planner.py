@@ -2,6 +2,7 @@
 
 import itertools
 import math
+import random
 
 from deckland_common.contract import Mode
 from landing_planner.planner import LandingPlanner, PlannerParams
@@ -410,9 +411,9 @@ def test_idle_does_not_latch_a_hold_height_before_the_first_valid_height():
     assert min(o.z_d_m for o in outs) > 1.95   # holds where it is, does not sink
 
 
-def _final_at(height):
+def _final_at(height, **params):
     """A driver in FINAL whose vehicle followed the reference exactly down to ``height``."""
-    d = aligned_driver()
+    d = aligned_driver(**params)
     d.run(0.6)
     d.height = 0.45
     d.step()
@@ -440,6 +441,27 @@ def test_final_reference_is_leashed_to_the_measured_height():
         d.height -= pp.final_speed_mps * DT
         d.step()
         assert d.out.z_d_m >= d.height - pp.final_leash_m - 1e-9
+
+
+def test_a_noisy_height_does_not_ratchet_the_leash():
+    """A vehicle resting 0.35 m above the deck with a height estimate noisy at 1.5 cm (lidar
+    noise x3): held to the raw height the 5 mm leash lifts z_d to each noise spike and z_d
+    rides the noise's upper envelope, above the vehicle (no descent is ever asked for); held
+    to the height low-passed over leash_filter_s it stays below the vehicle, asking for the
+    final descent."""
+    def mean_reference_above_vehicle(leash_filter_s):
+        d = _final_at(0.35, leash_filter_s=leash_filter_s)
+        rng = random.Random(7)
+        excess = []
+        for _ in range(300):
+            d.height = 0.35 + rng.gauss(0.0, 0.015)
+            d.step()
+            excess.append(d.out.z_d_m - 0.35)
+        assert d.out.mode is Mode.FINAL
+        return sum(excess[100:]) / len(excess[100:])
+
+    assert mean_reference_above_vehicle(1e-6) > 0.01          # the ratchet (raw height)
+    assert mean_reference_above_vehicle(PlannerParams().leash_filter_s) < 0.0
 
 
 def test_leash_only_bounds_the_reference_from_below():

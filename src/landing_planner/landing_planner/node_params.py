@@ -39,6 +39,8 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'final_press_m': 'final reference this far (m) below the contact height',
     'final_leash_m': 'final descent: the height reference at most this far (m) below the '
                      'measured height (bounds the catch-up speed of the altitude law)',
+    'leash_filter_s': 'time constant (s) of the low-pass on the measured height that the '
+                      'final-descent leash holds the reference to',
     'search_height_m': 'search height (m) above the surface below (Step 12)',
     'search_speed_mps': 'horizontal speed (m/s) of the search pattern',
     'search_radius_m': 'half side (m) of the square search pattern',

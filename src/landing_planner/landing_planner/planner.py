@@ -87,6 +87,7 @@ class PlannerParams:
     final_speed_mps: float = 0.08       # Step 10, relative to the deck (campaign: README)
     final_press_m: float = 0.3          # final target this far below contact height
     final_leash_m: float = 0.005        # FINAL: z_d at most this far below the measured h
+    leash_filter_s: float = 0.2         # ... h low-passed with this time constant first
     search_height_m: float = 3.5        # Step 12, above the surface below
     search_speed_mps: float = 0.5
     search_radius_m: float = 1.0        # half side of the square pattern
@@ -281,6 +282,7 @@ class LandingPlanner:
                                                         p.vertical_jerk_mps3))
         self._zref_ok = False
         self._leash_taken_m = 0.0   # what the leash took back in the landed band (_leash)
+        self._leash_h: float | None = None   # the height the leash holds to (low-passed h)
         self._vframe = VERTICAL_RELATIVE
         self._world_floor_m = 0.0
         self._path = _Path(ReferenceLimits(p.approach_accel_mps2, p.approach_jerk_mps3))
@@ -403,7 +405,9 @@ class LandingPlanner:
         if self._zref_ok:
             self._zref.step(z_target, z_speed, dt_s)
             if vert_ok:
-                self._leash()
+                self._leash(dt_s)
+            else:
+                self._leash_h = None
         thrust = self.mode is not Mode.LANDED
         if self.mode is Mode.IDLE and (vehicle.landed or (
                 self._height is not None
@@ -552,6 +556,8 @@ class LandingPlanner:
             self._epoch = v.surface_epoch
             if self._zref_ok and self._vframe == VERTICAL_RELATIVE and _finite(v.last_rebase_m):
                 self._zref.shift(-v.last_rebase_m)
+                if self._leash_h is not None:
+                    self._leash_h -= v.last_rebase_m
                 if self._l.hold_height_m is not None and self.mode in (Mode.IDLE, Mode.ALIGN):
                     # latched "hold where you are" heights move with the datum too
                     self._l.hold_height_m -= v.last_rebase_m
@@ -773,8 +779,10 @@ class LandingPlanner:
                                    - self.params.final_press_m - 3.0)
         self._vframe = want
 
-    def _leash(self) -> None:
-        """Final descent: the reference never runs more than ``final_leash_m`` below h.
+    def _leash(self, dt_s: float) -> None:
+        """Final descent: the reference never runs more than ``final_leash_m`` below h
+        (above the landed band: h low-passed over ``leash_filter_s``, or the leash ratchets
+        z_d up to the noise of the height estimate; README "Touchdown speed").
 
         The altitude law turns a height error into descent speed: on the DOB's sliding
         surface (14) σ = 0 means ė_z ≈ −Λ e_z, i.e. Λ = 10.5 (m/s) per metre, so a reference
@@ -799,7 +807,11 @@ class LandingPlanner:
         if (h is None or self._vframe != VERTICAL_RELATIVE
                 or self.mode not in (Mode.FINAL, Mode.FALLBACK) or h > p.final_approach_height_m):
             self._leash_taken_m = 0.0
+            self._leash_h = None
             return
+        hl = self._leash_h
+        hl = h if hl is None else hl + (h - hl) * dt_s / (p.leash_filter_s + dt_s)
+        self._leash_h = hl
         # a descent committed into a window (no reversal predicted before the contact, the
         # catch-up case) runs on a looser leash: with 5 mm the vehicle follows ż_d at ~0.03
         # instead of 0.08 m/s and lands seconds after the window it was committed into
@@ -810,7 +822,11 @@ class LandingPlanner:
             self._leash_taken_m = 0.0
         elif self._leash_taken_m >= p.landed_press_m - leash:
             return      # let go: the reference presses on toward its target
-        low = h - leash
+        # above the landed band the smaller of h and its low-pass: a noise spike up cannot lift
+        # z_d, and a deck coming up (h falling faster than the filter) is seen at once. In the
+        # band the raw height: what the leash takes back there is travel the
+        # vehicle was asked for and did not make, not the filter catching up (it lets go)
+        low = (h if in_band else min(h, hl)) - leash
         if self._zref.z_m < low:
             if in_band:
                 self._leash_taken_m += low - self._zref.z_m
