@@ -132,7 +132,7 @@ def test_compose_keeps_the_per_process_arguments_and_the_simulator_apart():
     cmd = nodes[1].command()
     assert cmd[1] == '-c' and 'deckland.graph.composed import main' in cmd[2] and len(cmd) == 4
     with pytest.raises(ValueError, match='components must not be empty'):
-        ComposedSpec(name='stack', package='deckland', module='composed')
+        ComposedSpec(name='stack', package='deckland', module='graph.composed')
 
 
 def test_node_class_finds_each_stack_node():
@@ -141,4 +141,4 @@ def test_node_class_finds_each_stack_node():
                 'dob_altitude', 'deck_simulator'):
         assert issubclass(node_class(pkg, 'node'), Node)
     with pytest.raises(ValueError, match='expected one Node subclass'):
-        node_class('deckland', 'up')
+        node_class('deckland.graph', 'up')

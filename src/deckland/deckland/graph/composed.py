@@ -58,7 +58,7 @@ def compose(nodes: list[NodeSpec], name: str = COMPOSED_NAME) -> list[NodeSpec]:
     together = [n for n in nodes if not n.sim_only]
     if not together:
         return alone
-    return [*alone, ComposedSpec(name=name, package='deckland', module='composed',
+    return [*alone, ComposedSpec(name=name, package='deckland', module='graph.composed',
                                  components=together)]
 
 
