@@ -1,20 +1,6 @@
 """Heaving deck (the apron of the paper's section 4.1.2, or a ship's landing pad).
 
-Pure and deterministic. Each heave model returns ``(z, vz, az)`` — the pad-top offset from its
-mean height and its analytic first and second time derivatives — from :meth:`state(t_s)`.
-
-* ``triangle``: the paper's linear actuators (Table 3): constant speed between
-  ``mean ± stroke/2``, reversing instantly (acceleration 0 except at the reversal instants).
-* ``sine``: ``A sin(2π t / T + φ)``.
-* ``sea_state``: irregular heave, a sum of ``components`` random-phase sinusoids whose
-  amplitudes follow a Pierson–Moskowitz (ITTC two-parameter) or JONSWAP spectrum fixed by the
-  significant height ``Hs = 4 √m0`` and the peak period ``Tp``. Decisions: the deck follows the
-  wave elevation (heave RAO = 1: a small vessel, FACTS.md); frequencies are drawn uniformly
-  inside equal bins over [0.4, 4] ω_p (so the record never repeats) and the amplitudes are
-  rescaled so that Σ a_i²/2 = m0 exactly (Hs exact, not only in expectation). The sum is
-  tabulated once with numpy on a 0.01 s grid covering the run; the per-step path interpolates
-  the table linearly (error < 1e-4 m) and falls back to the exact sum outside it.
-* ``none``: a fixed pad.
+More in the package README, "Module notes" (`deck_simulator.deck`).
 """
 
 from __future__ import annotations

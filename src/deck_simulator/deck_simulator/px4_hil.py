@@ -1,14 +1,6 @@
 """deckland's world as PX4's simulator: the Simulator MAVLink API, in lockstep (no rclpy).
 
-PX4 SITL with an external simulator (airframe 10016 ``none_iris``, module
-``simulator_mavlink``) connects to TCP 4560 + instance; :class:`Px4Hil` listens there. Each
-lockstep period it sends HIL_SENSOR (the simulator's IMU model; magnetometer and barometer at
-their rates) stamped with the world's time — PX4's clock follows it — plus HIL_GPS,
-HIL_STATE_QUATERNION (ground truth) and DISTANCE_SENSOR (deckland's lidar as PX4's distance
-sensor), waits for the HIL_ACTUATOR_CONTROLS PX4 computes from them, and turns the four motor
-outputs into motor thrusts through a thrust curve (the vehicle's motor lag follows) before the
-world steps on. Deck, contact, camera and lidar stay the world's. :func:`px4_params` makes PX4
-see the paper's vehicle.
+More in the package README, "Module notes" (`deck_simulator.px4_hil`).
 """
 
 from __future__ import annotations

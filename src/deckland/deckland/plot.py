@@ -1,26 +1,6 @@
 """``deckland plot``: the paper's Figures 7, 8 and 9 (section 4.2) from a bag or a run's CSV.
 
-Two sources feed one plotting path:
-
-* a rosbag2 bag recorded from the ROS graph (docs/interfaces.md): :func:`series_from_bag`;
-* the CSV that ``deckland sim --csv`` writes (columns = ``deckland.batch.runner.TRACE_FIELDS``):
-  :func:`series_from_csv`, or the in-memory ``RunResult.trace`` dict: :func:`series_from_trace`.
-
-Each returns a :class:`LandingSeries` (named time series on one time axis, seconds from the
-landing trigger, plus the touchdown time), and :func:`write_figures` draws the PNGs from it:
-
-* ``figure7.png`` — (a) x, (b) y of the vehicle and the apron, (c) altitude (lidar range,
-  vehicle altitude, height above the surface), (d) beacon visibility;
-* ``figure8.png`` — apron relative position (a, b) and velocity (c, d) in the heading frame
-  {B}: estimate against simulator truth (paper (23)-(24) quantities, Kalman filter (26)-(29));
-* ``figure9.png`` — (a) σ of (14) and (b) the commanded u_z of (16);
-* ``heave.png`` — deck heave against the vehicle's height with the touchdown marked.
-
-The time origin is the landing trigger, as in the paper's Figures 7-9: the first
-``planner/mode`` whose mode is not IDLE, HOLD or TAKEOFF (the same rule the simulator node uses
-for ``sim/outcome``'s ``time_to_land_s``); without one, the start of the data.
-
-Not a hot path and not a core: plain Python lists, matplotlib with the Agg backend.
+More in the package README, "Module notes" (`deckland.plot`).
 """
 
 from __future__ import annotations

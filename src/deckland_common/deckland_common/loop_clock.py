@@ -1,25 +1,6 @@
 """A fixed-rate loop clock phase-locked to a reference event (pure: no rclpy, no sleeping).
 
-The control chain of the graph (estimator → planner and altitude loop → bridge → autopilot)
-runs at 100 Hz, and its freshest input is the camera at 50 Hz. Two simple ways to clock it
-each miss one target:
-
-* free-running timer: a regular stream, but a camera frame waits up to a whole period
-  (10 ms) for the next tick — the camera-to-setpoint latency grows by that wait;
-* a step on every input (IMU tick and camera frame): low latency, but the output stream
-  inherits the timing noise of every process upstream, and camera frames add extra steps
-  (~150 outputs/s instead of 100).
-
-:class:`PhaseLockedLoop` does both: ticks on absolute deadlines ``next += period`` (no drift),
-and every reference event (a processed camera frame) nudges the phase by at most
-``max_slew_s`` so that ticks settle ``lead_s`` after the events. Once locked every other tick
-carries a fresh frame after a wait of only ``lead_s``; the period changes by at most
-``max_slew_s`` per event, so the stream stays regular. An event that comes too early or too
-late for a tick (beyond ``max_wait_s`` before it: while locking, or an outlier) is reported
-so the caller can publish it at once instead of holding it back.
-
-Times are seconds on one monotonic clock; the caller sleeps (:meth:`wait_s`) and calls
-:meth:`tick` at each deadline, and :meth:`on_event` for each reference event.
+More in the package README, "Module notes" (`deckland_common.loop_clock`).
 """
 
 from __future__ import annotations

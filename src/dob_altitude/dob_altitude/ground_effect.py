@@ -1,23 +1,6 @@
 """Nominal ground-effect gain γ of the paper's (4) (Cheeseman–Bennett), pure and hot-path safe.
 
-    γ = 1 / (1 − ρ r² / (4 z_p)²)                                                  (4)
-
-with ρ the (nominal ρ̄ in the controller, true ρ in the simulator) coefficient, r the propeller
-radius and z_p the height of the rotor plane above the surface. (4) diverges at
-z_p = r √ρ / 4 and is meaningless below it, so the height is clamped from below and the gain
-from above, as every implementation does near contact.
-
-Edge cases (decided here, tested in ``test/dob_altitude/test_ground_effect.py``):
-
-* ``rotor_height_m`` below ``min_height_m`` (including negative: lidar noise at contact, a
-  rotor plane estimated below the deck) → clamped to ``min_height_m``, i.e. *near* the ground.
-* NaN → treated like the clamp (near the ground). A missing height is most likely close to
-  the deck (short-range lidar dropouts), and assuming "far" there would under-estimate γ and
-  command the ballooning the ground effect causes. The controllers never reach this branch:
-  they reject a NaN input before computing γ̄.
-* −inf → clamp (it is below every height); +inf → 1.0, the exact limit of (4) for z_p → ∞
-  (REP-117 reports "no return / out of range" as +inf, which means far from any surface).
-* The result is always in ``[1, max_gain]`` (ρ ≤ 0 gives 1).
+More in the package README, "Module notes" (`dob_altitude.ground_effect`).
 """
 
 from __future__ import annotations

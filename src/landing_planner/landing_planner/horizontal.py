@@ -1,24 +1,6 @@
 """Horizontal position controller: PID with velocity feed-forward → roll/pitch (FLU).
 
-The paper flies x/y with a PID position loop on the autopilot side (section 4.1.3) and does not
-describe it; this is our own, derived from the translational rows of model (2). With the
-altitude loop holding u_z cφ cθ = m g, (2) gives the horizontal acceleration
-
-    ẍ = g (tan θ cψ + tan φ sψ / cos θ),   ÿ = g (tan θ sψ − tan φ cψ / cos θ),
-
-i.e. in the heading frame (forward f, left l): a_f = g tan θ, a_l = −g tan φ / cos θ, and the
-tilt angle β of R e3 satisfies |a_h| = g tan β. Hence
-
-    θ = atan(a_f / g),   φ = atan(−a_l cos θ / g),
-
-so positive pitch (nose down) accelerates forward and positive roll (right side down)
-accelerates to −y body — the conventions of :mod:`deckland_common.frames`.
-
-Control law (world ENU): a_cmd = a_ff + k_p e_p + k_d (v_ff − v) + k_i ∫ e_p dt (a_ff: the
-deck's acceleration fed forward), limited in norm to
-min(max_accel, g tan(max_tilt)). The integrator runs only while |e_p| < integral_zone (it is
-for steady disturbances such as wind, not for the transit), is frozen while the command is
-saturated and the error would push it further (conditional integration), and is clamped.
+More in the package README, "Module notes" (`landing_planner.horizontal`).
 """
 
 from __future__ import annotations

@@ -1,21 +1,6 @@
 """Smooth 1-D reference generator (z_d, ż_d, z̈_d) with speed, acceleration and jerk limits.
 
-The DOB law (16) feeds ż_d and z̈_d forward and its term (17), ζ = Λ ė_z (e_z² + 1)^(-3/2),
-is driven by the rate error ė_z = ż − ż_d (8). A reference whose rate jumps (e.g. a descent
-that starts at 0.4 m/s instantly) makes ė_z jump and the thrust kick. This generator therefore
-keeps z_d and ż_d continuous (|z̈_d| ≤ max_accel) and z̈_d continuous too (|d z̈_d/dt| ≤
-max_jerk), and it never passes its target.
-
-Method (pure, plain floats): every step picks a jerk j. The preferred jerk j_v drives the
-speed toward ``max_speed``: the next acceleration is chosen so that releasing it at full jerk
-lands the speed exactly on the limit (a discrete square-root law, no speed overshoot). j_v is
-accepted only if, from the state one step later, a maximum-jerk braking manoeuvre (ramp to
-−A, hold, ramp back to 0, see :func:`stopping_displacement`) still comes to rest before the
-target; otherwise the largest of {j_v/2, j_v/5, j_v/20, 0, −J} that is still safe is used
-(−J when none is; the fractions let it creep onto the target instead of stalling a hair
-short). Near the target the state is snapped onto it once the residual is below 1e-6 m and
-1e-4 m/s. Verified for dt ≤ 0.01 s (the planner runs at 100 Hz); at 20 Hz the braking check
-is coarse and the target may be passed by ~1 mm.
+More in the package README, "Module notes" (`landing_planner.reference`).
 """
 
 from __future__ import annotations

@@ -1,19 +1,6 @@
 """Pure conversions between the deckland ROS side (ENU/FLU, SI) and MAVLink (NED/FRD, cm, µs).
 
-Nothing here imports pymavlink or rclpy: the functions take and return plain floats, tuples and
-small frozen dataclasses, so the simulator's autopilot emulator and the ROS bridge share them.
-
-Frames (see :mod:`deckland_common.frames`): world ENU ↔ NED maps ``(x, y, z)_ned = (y, x, −z)``;
-body FLU ↔ FRD maps ``(x, y, z)_frd = (x, −y, −z)``. For Z-Y-X Euler angles this gives
-``roll_frd = roll_flu``, ``pitch_frd = −pitch_flu``, ``yaw_ned = π/2 − yaw_enu``.
-
-Sign convention worth stating twice: in FLU a *positive* pitch tilts the nose *down* (paper (2):
-``ẍ ∝ sθ`` accelerates forward). In FRD a nose-down pitch is *negative* (aviation convention,
-the nose-up pitch is positive). So a nose-down attitude is ``pitch_flu > 0`` and
-``pitch_frd < 0``: the same physical attitude, two signs.
-
-The collective thrust sent to the autopilot is the paper's ``u_z`` of (1)/(2): the magnitude of
-the thrust along body z (not its vertical component), so no tilt compensation happens here.
+More in the package README, "Module notes" (`mavlink_bridge.conversions`).
 """
 
 from __future__ import annotations

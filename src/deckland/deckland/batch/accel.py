@@ -1,23 +1,6 @@
 """Compiled cores for batch runs: the same Python sources, compiled by mypyc.
 
-The in-process simulator (`deckland campaign|sim|tune`, `python -m deckland.batch.perf`) spends its
-time in the flight cores and the simulator's physics. mypyc compiles those modules, unchanged,
-into C extensions; a campaign that loads them flies the same code about three times faster.
-Nothing is compiled for the ROS nodes, which always run the Python sources.
-
-- `build()` copies the packages' sources into a staging directory, type-checks and compiles
-  the modules of `COMPILED_MODULES` (mypyc, `-O3`, `-ffp-contract=off` so that the C compiler
-  never fuses a multiply and an add: every float operation rounds exactly as CPython's does),
-  and writes the extensions plus a manifest (sha256 of every compiled source, the Python
-  version, the mypy version) into the accel directory.
-- `enable()` puts that directory in front of each package's ``__path__`` so that the next
-  import of a core module loads the extension. It refuses (and the Python sources are used)
-  when the build is missing, was made for another Python, or any compiled source changed since:
-  a stale extension never flies. It must run before any core module is imported.
-
-`test/deckland/test_accel.py` flies the same seeds both ways and requires identical results.
-The accel directory is ``$DECKLAND_ACCEL_DIR`` if set, else ``build/accel`` at the root of the
-source tree this package lives in (an editable install), else ``~/.cache/deckland/accel``.
+More in the package README, "Module notes" (`deckland.batch.accel`).
 """
 
 from __future__ import annotations

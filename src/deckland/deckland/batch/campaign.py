@@ -1,38 +1,6 @@
 """``deckland campaign`` and ``deckland sim``: many seeded landings, one report.
 
-The campaign JSON is a stable interface (other tools read it)::
-
-    {"scenario", "controller", "runs", "seed", "success_rate", "fallback_rate", "crash_rate",
-     "horizontal_error_m": {"p50", "p95", "max"}, "touchdown_speed_mps": {"p50", "p95", "max"},
-     "time_to_land_s": {"p50", "p95"}, "wall_time_s", "realtime_factor",
-     "workers", "realtime_factor_per_worker", "backend", "cores",
-     "failures": [{"seed", "reason", "outcome"}],
-     "outcomes": {"deck", "failed", "fallback", "hold", "crash", "unstable"},
-     "success_ci95": [lo, hi],
-     "first_contact": {"runs", "normal_speed_mps": {"p50", "p95", "max"},
-                       "lateral_speed_mps": {...}, "tilt_rad": {...}},
-     "impacts": {"runs_with_later_impacts", "later_impacts", "max_speed_mps": {...}},
-     "bounces": {"runs", "total", "max_height_m": {...}}, "settled_rate"}
-
-``realtime_factor`` is simulated seconds per wall-clock second over the whole campaign (all
-workers); ``realtime_factor_per_worker`` divides it by the worker processes used. ``cores`` is
-``'compiled'`` when the mypyc build of the cores flew the runs (``deckland.batch.accel``; identical
-results), ``'python'`` otherwise. ``backend`` is where the runs flew (``'local'`` process pool or
-``'ray'``, `deckland.batch.backends`); no key but `HOW_RUN_KEYS` depends on how the runs were
-flown.
-
-``outcomes`` counts the runs of each class (``deck_simulator.outcome.classify``,
-docs/failsafe.md); a failure's ``outcome`` is its class. ``success_ci95`` is the 95 % Wilson
-interval of the success rate (a success is a landing that kept every rule of
-docs/world/contact.md). The landing figures are uncensored: ``first_contact`` is taken over
-every run that touched anything (relative normal and lateral speed, relative tilt),
-``impacts`` counts the impacts after the first and gives each run's fastest impact,
-``bounces`` the runs that bounced and the highest hop of each, ``settled_rate`` the share of
-those runs that came to rest. ``horizontal_error_m`` and ``touchdown_speed_mps`` stay over the
-successful landings only.
-
-Run ``i`` of a campaign with seed ``S`` flies seed ``S * 100000 + i``; any failure listed in the
-report is reproduced alone with ``deckland sim --scenario NAME --seed <that seed>``.
+More in the package README, "Module notes" (`deckland.batch.campaign`).
 """
 
 from __future__ import annotations

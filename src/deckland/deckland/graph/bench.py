@@ -1,31 +1,6 @@
 """``deckland bench latency``: end-to-end latency, loop jitter and CPU of the simulated graph.
 
-The graph is started as ``deckland up`` starts it (:func:`deckland.graph.up.graph_substitutions`,
-:func:`deckland.graph.orchestrator.load_graph`,
-:class:`deckland.graph.orchestrator.Orchestrator`), with one addition: a UDP tap process sits on
-loopback between ``mavlink_bridge`` and the simulator's autopilot (the bridge's ``connection``
-points at the tap, the tap relays both ways). The tap timestamps every SET_ATTITUDE_TARGET on
-arrival (``time.time()``, the clock ROS stamps use) and keeps its ``time_boot_ms``, which the
-bridge fills with the command's source stamp in ms mod 2^32 (the small, marked hook in
-``mavlink_bridge/node.py``).
-
-Stamp chain from a setpoint back to its camera frame::
-
-    SET_ATTITUDE_TARGET.time_boot_ms == ms(control/thrust header.stamp)   (bridge hook)
-    control/thrust header.stamp      == apron/state t_s                   (dob_altitude)
-    apron/state camera_stamp_s       == pixy/blocks header.stamp          (apron_estimator)
-
-Figures (all from wall-clock arrival times on this machine):
-
-* e2e latency: for each Pixy frame, the arrival of the *first* SET_ATTITUDE_TARGET computed from
-  it minus the frame's stamp (the exposure time; it contains the camera's own delivery latency).
-* stack latency: the same minus that camera latency, i.e. from the driver's publication of
-  ``pixy/blocks`` (its stamp is arrival − ``latency_s``) to the MAVLink send.
-* loop jitter: ``|Δt − 10 ms|`` of consecutive SET_ATTITUDE_TARGET arrivals at the tap.
-* CPU: utime + stime deltas from ``/proc/<pid>/stat`` over the window, % of one core.
-
-The pure parts (percentiles, ``/proc`` parsing, MAVLink frame parsing, stamp matching, jitter,
-the report) are plain functions with unit tests; the runner is :func:`run_latency_bench`.
+More in the package README, "Module notes" (`deckland.graph.bench`).
 """
 
 from __future__ import annotations

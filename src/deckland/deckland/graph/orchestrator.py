@@ -1,25 +1,6 @@
 """A small process orchestrator standing in for ``ros2 launch`` (not available here).
 
-The graph is a YAML mapping with a list of nodes (schema in ``src/deckland/README-up.md``);
-each node runs as its own process (its own session, so a signal to it reaches its whole process
-group) with ``--ros-args`` (``-r __node:=NAME``, ``-p key:=value``, ``-r from:=to``). Output
-lines are prefixed with the node's name and the last ``tail_lines`` of each node are kept.
-
-A node that exits is reported (name, exit status or signal, the last lines of its log) and, if
-its entry says ``respawn: true``, started again after a back-off (``respawn_delay_s``, doubled
-after every respawn, capped at :data:`MAX_BACKOFF_S`) at most ``respawn_limit`` times.
-:meth:`Orchestrator.kill` is fault injection (``node_kill``): the node is SIGKILLed and held
-down (never respawned) until :meth:`Orchestrator.release`. :meth:`Orchestrator.stop` sends
-SIGINT, then SIGTERM, then SIGKILL, so every child is gone within ``stop_timeout_s``.
-Readiness is explicit: every child gets the write end of one pipe (``$DECKLAND_READY_FD``) and
-writes a JSON line once its node is built (:func:`deckland_common.ros_node.notify_ready`);
-:meth:`Orchestrator.wait_ready` waits on those lines. ``pass_fds`` (sockets bound by the caller
-before the start, so their ports cannot be taken in between) are inherited by every child.
-
-Parameters are data, never code: names are checked against ROS name rules, the package and
-module against Python's dotted-identifier rule (they are the only text placed into the child's
-``-c`` program), and values are rendered as YAML literals (strings always single-quoted), passed
-as separate argv entries without a shell.
+More in the package README, "Module notes" (`deckland.graph.orchestrator`).
 """
 
 from __future__ import annotations

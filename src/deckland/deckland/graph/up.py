@@ -1,21 +1,6 @@
 """``deckland up``: start the node graph, fly the mission, stop everything, report.
 
-Simulation (default): the deck_simulator node stands in for the Pixhawk (MAVLink over UDP) and
-the Pixy (block bytes over UDP); the exit status is the landing's result and
-``DIR/report.json`` holds the same outcome fields as a campaign run. Hardware
-(``--hardware --mavlink URL --pixy-port DEV``): the same graph without the simulator.
-
-Sequence: start every node (:class:`deckland.graph.orchestrator.Orchestrator`), wait until the
-``wait_for_topics`` of the graph flow, start the in-process bag recorder and wait until it
-receives them (so the bag covers the mission from the trigger on), request OFFBOARD, trigger
-``planner/start_landing``, then watch: node exits are reported (and respawned if the graph says
-so), ``node_kill`` faults of the scenario are injected (SIGKILL at ``start_s`` after the
-trigger), until the outcome, the timeout or SIGINT/SIGTERM. Then every child is stopped
-(within 5 s), the bag is finished, ``report.json`` is written and a summary is printed.
-``--autopilot px4-sitl`` / ``ardupilot-sitl``: the firmware flies the simulated vehicle
-(:mod:`deckland.sitl.mission` / :mod:`deckland.sitl.ardupilot`:
-started first, an operator's take-off before OFFBOARD, disarm awaited, killed at the end).
-Exit codes: see :data:`EXIT_CODES` and ``src/deckland/README-up.md``.
+More in the package README, "Module notes" (`deckland.graph.up`).
 """
 
 from __future__ import annotations

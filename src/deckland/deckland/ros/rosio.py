@@ -1,19 +1,6 @@
 """Shared ROS I/O helpers for ``deckland topic`` and ``deckland bag`` (rclpy + rosbags only).
 
-There is no ros2cli, rosidl_runtime_py or rosbag2_py here, so this module supplies the small
-pieces those tools normally borrow:
-
-- message classes from type strings (``std_msgs/msg/String`` -> ``std_msgs.msg.String``),
-- QoS matched to the publishers of a topic (the ``ros2 topic echo`` / ``ros2 bag record`` rule:
-  best effort if any publisher is best effort, transient local only if all publishers are),
-- conversions between rclpy ``QoSProfile`` and rosbags ``Qos`` (the offered QoS profiles that
-  rosbag2 stores per topic) and their YAML form,
-- :class:`RosSession`: one node in its own (or a borrowed) context with a single-threaded
-  executor, so every command runs isolated and shuts down cleanly,
-- message -> nested dict conversion for printing.
-
-rclpy is imported lazily inside functions so that the pure helpers (QoS tables, YAML, dicts)
-stay importable and testable without a ROS context.
+More in the package README, "Module notes" (`deckland.ros.rosio`).
 """
 
 from __future__ import annotations

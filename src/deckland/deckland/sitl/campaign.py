@@ -1,15 +1,6 @@
 """``deckland campaign --autopilot NAME``: seeded missions through a registered firmware.
 
-Run ``i`` flies seed ``S * 100000 + i`` (:func:`deckland.batch.campaign.run_seed`) as one
-``deckland up --autopilot NAME`` mission in its own process (its own firmware, working directory
-and graph), in real time: the graph runs on the wall clock, so the world cannot go faster than
-it. The report is the in-process campaign's JSON (:func:`deckland.batch.campaign.summarize`) plus
-``autopilot``, ``per_run`` (each seed through PX4 and in-process, side by side),
-``in_process`` (the in-process summary of the same seeds), ``comparison`` (PX4 / in-process
-ratios), ``failsafe_check`` for link faults, ``attempts`` and ``machine`` (load, niceness).
-A mission is flown again (same seed, up to ``--retries``) only when the *machine* spoiled it:
-PX4 did not come up, or the world stalled (``--max-stalls``, the simulator's lockstep health
-over the mission); every attempt is kept in ``attempts``.
+More in the package README, "Module notes" (`deckland.sitl.campaign`).
 """
 
 from __future__ import annotations

@@ -1,17 +1,6 @@
 """Figures of PX4 SITL in the loop: boot-to-ready, lockstep rate, CPU of PX4 and of the bridge.
 
-``python -m deckland.sitl.measure [--out FILE] [--seconds S]`` runs, one after the other:
-
-* ``link``: PX4 SIH (10040) and the bridge's own decision core on a plain pymavlink socket:
-  messages/s and message types PX4 sends on the onboard link, untrimmed and after the
-  bridge's SET_MESSAGE_INTERVAL −1 trim;
-* ``bridge_cpu``: the ``mavlink_bridge_node`` process against PX4 SIH on the ground, trim off
-  and on: its CPU (% of one core) over ``S`` seconds after a 6 s settling time;
-* ``hil``: PX4 none_iris on deckland's physics (:mod:`deck_simulator.px4_hil`) as fast as the
-  lockstep goes (unpaced): boot-to-ready, sim seconds per wall second on the ground and in
-  PX4's own hover after its take-off, CPU of PX4 and of this (simulator) process.
-
-Each PX4 runs niced (10) in a fresh directory; the JSON goes to ``--out`` and stdout.
+More in the package README, "Module notes" (`deckland.sitl.measure`).
 """
 
 from __future__ import annotations
