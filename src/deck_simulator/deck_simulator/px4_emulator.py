@@ -258,17 +258,24 @@ class Px4Emulator:
 
     # --- stepping ------------------------------------------------------------------------
 
+    def _advance_clock(self, t_s: float) -> bool:
+        """Take ``t_s`` as the emulator's time; False (counted ``out_of_order``) if it went
+        backwards."""
+        if t_s < self._t_s:
+            self.rejected['out_of_order'] += 1
+            return False
+        self._t_s = t_s
+        if self._t0_s is None:
+            self._t0_s = t_s
+        return True
+
     def update(self, t_s: float) -> None:
         """Read and handle every pending packet (and, without a world, run the mode logic)."""
         if not math.isfinite(t_s):
             self.rejected['nan'] += 1
             return
-        if t_s < self._t_s:
-            self.rejected['out_of_order'] += 1
+        if not self._advance_clock(t_s):
             return
-        self._t_s = t_s
-        if self._t0_s is None:
-            self._t0_s = t_s
         for data, addr in self.transport.receive():
             self._reset_parser()  # a datagram is self-contained: a truncated one ends here
             try:
@@ -304,12 +311,8 @@ class Px4Emulator:
         if not all(map(math.isfinite, vals)):
             self.rejected['nan'] += 1
             return
-        if t_s < self._t_s:
-            self.rejected['out_of_order'] += 1
+        if not self._advance_clock(t_s):
             return
-        self._t_s = t_s
-        if self._t0_s is None:
-            self._t0_s = t_s
         self._pos, self._vel = tuple(position_enu), tuple(velocity_enu)
         self._att, self._rates = (roll, pitch, yaw), tuple(rates_flu)
         self._accel = tuple(accel_body_flu)

@@ -17,7 +17,7 @@ from deckland_common.frames import Mat3, Vec3, rot_body_to_world
 
 from deck_simulator.sensor_imu import euler_from_matrix
 from deck_simulator.sensor_models import ModelStreams, TimingParams, mat_mul
-from deck_simulator.sensors import CameraParams, optical_from_body
+from deck_simulator.sensors import CameraParams, optical_from_body, to_optical
 from deckland_common import validate as chk
 
 
@@ -125,13 +125,7 @@ class TrueCamera:
 
     def optical(self, r_body_to_world: Mat3, d0: float, d1: float, d2: float) -> Vec3:
         """Optical-frame coordinates of the world vector d (camera → point)."""
-        c, r = self._c, r_body_to_world
-        b0 = r[0][0] * d0 + r[1][0] * d1 + r[2][0] * d2
-        b1 = r[0][1] * d0 + r[1][1] * d1 + r[2][1] * d2
-        b2 = r[0][2] * d0 + r[1][2] * d1 + r[2][2] * d2
-        return (c[0][0] * b0 + c[0][1] * b1 + c[0][2] * b2,
-                c[1][0] * b0 + c[1][1] * b1 + c[1][2] * b2,
-                c[2][0] * b0 + c[2][1] * b1 + c[2][2] * b2)
+        return to_optical(self._c, r_body_to_world, d0, d1, d2)
 
     def project_optical(self, xo: float, yo: float, zo: float) -> tuple[float, float] | None:
         """Pixel (u, v) of an optical-frame point; None behind the lens."""

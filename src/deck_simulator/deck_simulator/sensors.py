@@ -204,7 +204,7 @@ def optical_from_body(mount_rpy_rad: tuple[float, float, float]) -> Mat3:
             (-m[0][2], -m[1][2], -m[2][2]))
 
 
-def _to_optical(c: Mat3, r: Mat3, d0: float, d1: float, d2: float) -> tuple[
+def to_optical(c: Mat3, r: Mat3, d0: float, d1: float, d2: float) -> tuple[
         float, float, float]:
     """Optical coordinates of the world vector d: C · Rᵀ · d."""
     b0 = r[0][0] * d0 + r[1][0] * d1 + r[2][0] * d2
@@ -223,7 +223,7 @@ def project_point(params: CameraParams, cam_position_m: tuple[float, float, floa
     u = c_x + f_x x_o / z_o, v = c_y + f_y y_o / z_o with f_x = (W/2) / tan(fov_x/2),
     f_y = (H/2) / tan(fov_y/2) (full FOV angles, Table 2).
     """
-    xo, yo, zo = _to_optical(optical_from_body(params.mount_rpy_rad), r_body_to_world,
+    xo, yo, zo = to_optical(optical_from_body(params.mount_rpy_rad), r_body_to_world,
                              point_m[0] - cam_position_m[0], point_m[1] - cam_position_m[1],
                              point_m[2] - cam_position_m[2])
     if zo <= 1e-6:
@@ -300,7 +300,7 @@ class Camera:
         d1 = beacon_m[1] - cam_position_m[1]
         d2 = beacon_m[2] - cam_position_m[2]
         if true_camera is None:
-            xo, yo, zo = _to_optical(self._c, r_body_to_world, d0, d1, d2)
+            xo, yo, zo = to_optical(self._c, r_body_to_world, d0, d1, d2)
         else:
             xo, yo, zo = true_camera.optical(r_body_to_world, d0, d1, d2)
         dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
@@ -352,7 +352,7 @@ class Camera:
         d0 = point_m[0] - cam_position_m[0]
         d1 = point_m[1] - cam_position_m[1]
         d2 = point_m[2] - cam_position_m[2]
-        xo, yo, zo = _to_optical(self._c, r_body_to_world, d0, d1, d2)
+        xo, yo, zo = to_optical(self._c, r_body_to_world, d0, d1, d2)
         if zo <= 1e-3 or d0 * d0 + d1 * d1 + d2 * d2 > p.max_range_m ** 2:
             return None
         ui = round(self._cx + self._fx * xo / zo + rng.gauss(0.0, p.pixel_noise_px))

@@ -763,13 +763,20 @@ class BridgeCore:
             self.rejected['nan' if not all(map(math.isfinite, q_enu_flu))
                           else 'bad_quaternion'] += 1
             return False
+        if not self._take_attitude_stamp(t_s, stamp_s):
+            return False
+        self._att_q_ned = quat_enu_flu_to_ned_frd(qn)
+        self._att_euler = quaternion_to_euler(*qn)
+        return True
+
+    def _take_attitude_stamp(self, t_s: float, stamp_s: float) -> bool:
+        """An attitude command stamped ``stamp_s`` is newer than the last (else counted
+        ``out_of_order``, False); it becomes the last, received at ``t_s``."""
         if stamp_s < self._att_stamp:
             self.rejected['out_of_order'] += 1
             return False
         self._att_stamp = stamp_s
         self._att_rx_s = t_s
-        self._att_q_ned = quat_enu_flu_to_ned_frd(qn)
-        self._att_euler = quaternion_to_euler(*qn)
         return True
 
     def on_attitude_euler(self, t_s: float, stamp_s: float, roll_rad: float, pitch_rad: float,
@@ -778,11 +785,8 @@ class BridgeCore:
         if not all(map(math.isfinite, (t_s, stamp_s, roll_rad, pitch_rad, yaw_rad))):
             self.rejected['nan'] += 1
             return False
-        if stamp_s < self._att_stamp:
-            self.rejected['out_of_order'] += 1
+        if not self._take_attitude_stamp(t_s, stamp_s):
             return False
-        self._att_stamp = stamp_s
-        self._att_rx_s = t_s
         self._att_q_ned = euler_enu_to_quat_ned(roll_rad, pitch_rad, yaw_rad)
         self._att_euler = (roll_rad, pitch_rad, yaw_rad)
         return True

@@ -81,6 +81,19 @@ def _policy_name(policy: Any) -> str:
     return str(getattr(policy, 'name', policy)).lower()
 
 
+def _keep_last(reliability: str, durability: str, depth: int) -> Any:
+    """A KEEP_LAST profile from policy names ('best_effort' | 'reliable',
+    'transient_local' | 'volatile')."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        reliability=(ReliabilityPolicy.BEST_EFFORT if reliability == 'best_effort'
+                     else ReliabilityPolicy.RELIABLE),
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if durability == 'transient_local'
+                    else DurabilityPolicy.VOLATILE))
+
+
 def subscription_qos(publisher_qos: Iterable[Any], mode: str = 'auto', depth: int = 10) -> Any:
     """rclpy ``QoSProfile`` for subscribing to a topic offered with ``publisher_qos``.
 
@@ -106,12 +119,7 @@ def subscription_qos(publisher_qos: Iterable[Any], mode: str = 'auto', depth: in
     pubs = list(publisher_qos)
     reliability, durability = match_publishers(
         (_policy_name(q.reliability) for q in pubs), (_policy_name(q.durability) for q in pubs))
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=depth,
-        reliability=(ReliabilityPolicy.BEST_EFFORT if reliability == 'best_effort'
-                     else ReliabilityPolicy.RELIABLE),
-        durability=(DurabilityPolicy.TRANSIENT_LOCAL if durability == 'transient_local'
-                    else DurabilityPolicy.VOLATILE))
+    return _keep_last(reliability, durability, depth)
 
 
 def _duration_to_qostime(duration: Any) -> Any:
@@ -183,18 +191,11 @@ def publisher_qos_from_offered(offered: list[Any], depth: int = 10) -> Any:
     Reliable unless a recorded publisher was best effort; transient local only if every
     recorded publisher was (so late joiners still get latched state such as ``planner/mode``).
     """
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-
     reliability, durability = match_publishers(
         (q.reliability.name.lower() for q in offered),
         (q.durability.name.lower() for q in offered))
     depth = max([depth, *(int(q.depth) for q in offered if int(q.depth) > 0)])
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=depth,
-        reliability=(ReliabilityPolicy.BEST_EFFORT if reliability == 'best_effort'
-                     else ReliabilityPolicy.RELIABLE),
-        durability=(DurabilityPolicy.TRANSIENT_LOCAL if durability == 'transient_local'
-                    else DurabilityPolicy.VOLATILE))
+    return _keep_last(reliability, durability, depth)
 
 
 # ------------------------------------------------------------------------------- typestore
