@@ -19,7 +19,6 @@ from mavlink_bridge.conversions import (
     ARDUCOPTER_MODES,
     MAV_SENSOR_ROTATION_PITCH_270,
     ThrustCalibration,
-    decode_attitude_target,
     euler_enu_to_quat_ned,
     range_m_to_distance_cm,
 )
@@ -259,18 +258,9 @@ class ArduPilotEmulator(Px4Emulator):
         if kind == 'HEARTBEAT' and msg.get_srcSystem() == self.ardupilot.sysid_mygcs:
             self._gcs_hb_s = t_s
         if kind == 'SET_ATTITUDE_TARGET':
-            p = self.params
-            if msg.target_system not in (0, p.system_id):
-                self.rejected['wrong_target'] += 1
-                return
-            if msg.type_mask & (64 | 128):            # ArduCopter ignores these
-                self.rejected['unsupported_mask'] += 1
-                return
-            tgt = decode_attitude_target(tuple(msg.q), msg.thrust, msg.type_mask, p.thrust)
+            tgt = self._attitude_target(msg)
             if tgt is None:
-                self.rejected['nan'] += 1
                 return
-            self.counters['setpoints_rx'] += 1
             self.last_setpoint_s = t_s
             self._raw_thrust = float(msg.thrust)
             self._use_thrust = bool(self.ardupilot.guid_options & 8)

@@ -342,6 +342,24 @@ class Px4Emulator:
         self.mav.command_ack_send(command, result, 0, 0, msg.get_srcSystem(),
                                   msg.get_srcComponent())
 
+    def _attitude_target(self, msg):
+        """A SET_ATTITUDE_TARGET for us, decoded (counted ``setpoints_rx``), or None, counted:
+        another target system, body rates asked for (mask bits 64/128, ignored by PX4 and
+        ArduCopter alike), or non-finite values."""
+        p = self.params
+        if msg.target_system not in (0, p.system_id):
+            self.rejected['wrong_target'] += 1
+            return None
+        if msg.type_mask & (64 | 128):
+            self.rejected['unsupported_mask'] += 1
+            return None
+        tgt = decode_attitude_target(tuple(msg.q), msg.thrust, msg.type_mask, p.thrust)
+        if tgt is None:
+            self.rejected['nan'] += 1
+            return None
+        self.counters['setpoints_rx'] += 1
+        return tgt
+
     def _handle(self, t_s: float, msg) -> None:
         kind = msg.get_type()
         p = self.params
@@ -349,17 +367,9 @@ class Px4Emulator:
             self.counters['heartbeats_rx'] += 1
             self.last_peer_heartbeat_s = t_s
         elif kind == 'SET_ATTITUDE_TARGET':
-            if msg.target_system not in (0, p.system_id):
-                self.rejected['wrong_target'] += 1
-                return
-            if msg.type_mask & (64 | 128):
-                self.rejected['unsupported_mask'] += 1
-                return
-            tgt = decode_attitude_target(tuple(msg.q), msg.thrust, msg.type_mask, p.thrust)
+            tgt = self._attitude_target(msg)
             if tgt is None:
-                self.rejected['nan'] += 1
                 return
-            self.counters['setpoints_rx'] += 1
             self.autopilot.on_setpoint(t_s, tgt.roll_rad, tgt.pitch_rad, tgt.yaw_rad,
                                        tgt.thrust_n)
         elif kind == 'TIMESYNC':

@@ -17,7 +17,7 @@ import math
 from deckland_common.contract import GRAVITY_MPS2, PAPER_MASS_KG
 
 from dob_altitude.ground_effect import ground_effect_gain
-from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection, saturate
+from dob_altitude.types import AltitudeInput, AltitudeOutput, GuardedAltitudeLaw, saturate
 
 #: Table 4 of the paper: controller gains K, Λ and observer gain Γ.
 PAPER_K = 0.85
@@ -97,7 +97,7 @@ _DOB_PROFILES: dict[str, DobParams] = {
 }
 
 
-class DobAltitudeController:
+class DobAltitudeController(GuardedAltitudeLaw):
     """The DOB altitude controller (16)-(19) as a pure, stepped core.
 
     Call :meth:`step` once per control period (100 Hz in the paper) with the time elapsed since
@@ -152,12 +152,9 @@ class DobAltitudeController:
         ``rejected`` and the last good output is returned again (free-air hover thrust
         m g / cφcθ, tilt-guarded, if there is none yet).
         """
-        reason = input_rejection(inp, dt_s, applied_thrust_n)
-        if reason is not None:
-            self.rejected[reason] += 1
-            if reason == 'nan':
-                self._pending_dt += dt_s
-            return self._hold(inp)
+        held = self._refused(inp, dt_s, applied_thrust_n)
+        if held is not None:
+            return held
         a_s = inp.surface_accel_mps2
 
         gam = self._gam
@@ -214,23 +211,3 @@ class DobAltitudeController:
         out = AltitudeOutput(u, u_unsat, saturated, sigma, d_hat, e, gbar)
         self._last = out
         return out
-
-    def _hold(self, inp: AltitudeInput) -> AltitudeOutput:
-        """Safe output for a rejected sample: the last good one, else free-air hover thrust."""
-        if self._last is not None:
-            return self._last
-        return hover_output(inp, self._m * self._g, self._cos_max_tilt, self._umin, self._umax)
-
-
-def hover_output(inp: AltitudeInput, weight_n: float, cos_max_tilt: float, thrust_min_n: float,
-                 thrust_max_n: float) -> AltitudeOutput:
-    """Hover thrust m g / cφcθ with no ground-effect credit (γ̄ = 1), used before any good sample.
-
-    Assuming free air when nothing is known errs toward climbing away from a surface rather
-    than toward sinking into it.
-    """
-    c = math.cos(inp.roll_rad) * math.cos(inp.pitch_rad)
-    if not c >= cos_max_tilt:  # also NaN
-        c = cos_max_tilt if math.isfinite(c) else 1.0
-    u = min(thrust_max_n, max(thrust_min_n, weight_n / c))
-    return AltitudeOutput(u, u, False, 0.0, 0.0, 0.0, 1.0)

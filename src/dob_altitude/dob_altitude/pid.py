@@ -22,10 +22,9 @@ from dob_altitude.dob import (
     PAPER_LAM,
     DobParams,
     check_limits,
-    hover_output,
 )
 from dob_altitude.ground_effect import ground_effect_gain
-from dob_altitude.types import AltitudeInput, AltitudeOutput, input_rejection, saturate
+from dob_altitude.types import AltitudeInput, AltitudeOutput, GuardedAltitudeLaw, saturate
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,7 +102,7 @@ class PidParams:
 TUNED_DEFAULT_GAINS = {'kp': 16.2069, 'ki': 8.5435, 'kd': 20.672}
 
 
-class PidAltitudeController:
+class PidAltitudeController(GuardedAltitudeLaw):
     """Classic PID altitude controller with the same interface as the DOB controller.
 
     Attributes: ``integral`` (∫e_z dt, m·s), ``rejected`` (``'nan'``, ``'bad_dt'``) and
@@ -140,12 +139,9 @@ class PidAltitudeController:
         anti-windup: if it fell short of (exceeded) the previous command, the actuator is
         treated as saturated high (low).
         """
-        reason = input_rejection(inp, dt_s, applied_thrust_n)
-        if reason is not None:
-            self.rejected[reason] += 1
-            if reason == 'nan':
-                self._pending_dt += dt_s
-            return self._hold(inp)
+        held = self._refused(inp, dt_s, applied_thrust_n)
+        if held is not None:
+            return held
         a_s = inp.surface_accel_mps2
 
         p = self.params
@@ -192,9 +188,3 @@ class PidAltitudeController:
         out = AltitudeOutput(u, u_unsat, saturated, sigma, i_term, e, gbar)
         self._last = out
         return out
-
-    def _hold(self, inp: AltitudeInput) -> AltitudeOutput:
-        """Safe output for a rejected sample: the last good one, else free-air hover thrust."""
-        if self._last is not None:
-            return self._last
-        return hover_output(inp, self._m * self._g, self._cos_max_tilt, self._umin, self._umax)

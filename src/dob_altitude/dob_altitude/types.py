@@ -62,3 +62,49 @@ def saturate(u: float, lo: float, hi: float) -> tuple[float, bool]:
     if u < lo:
         return lo, True
     return u, False
+
+
+def hover_output(inp: AltitudeInput, weight_n: float, cos_max_tilt: float, thrust_min_n: float,
+                 thrust_max_n: float) -> AltitudeOutput:
+    """Hover thrust m g / cφcθ with no ground-effect credit (γ̄ = 1), used before any good sample.
+
+    Assuming free air when nothing is known errs toward climbing away from a surface rather
+    than toward sinking into it.
+    """
+    c = math.cos(inp.roll_rad) * math.cos(inp.pitch_rad)
+    if not c >= cos_max_tilt:  # also NaN
+        c = cos_max_tilt if math.isfinite(c) else 1.0
+    u = min(thrust_max_n, max(thrust_min_n, weight_n / c))
+    return AltitudeOutput(u, u, False, 0.0, 0.0, 0.0, 1.0)
+
+
+class GuardedAltitudeLaw:
+    """What both altitude laws (the DOB of (16)-(19) and the PID baseline) do with a refused
+    sample: count it, carry its dt into the next good one when it was a non-finite sample,
+    and return the last good output (free-air hover thrust before any)."""
+
+    rejected: dict[str, int]
+    _pending_dt: float
+    _last: AltitudeOutput | None
+    _m: float
+    _g: float
+    _cos_max_tilt: float
+    _umin: float
+    _umax: float
+
+    def _refused(self, inp: AltitudeInput, dt_s: float,
+                 applied_thrust_n: float | None) -> AltitudeOutput | None:
+        """The output to return for a refused sample, or None (the sample is good)."""
+        reason = input_rejection(inp, dt_s, applied_thrust_n)
+        if reason is None:
+            return None
+        self.rejected[reason] += 1
+        if reason == 'nan':
+            self._pending_dt += dt_s
+        return self._hold(inp)
+
+    def _hold(self, inp: AltitudeInput) -> AltitudeOutput:
+        """Safe output for a rejected sample: the last good one, else free-air hover thrust."""
+        if self._last is not None:
+            return self._last
+        return hover_output(inp, self._m * self._g, self._cos_max_tilt, self._umin, self._umax)
