@@ -202,7 +202,11 @@ class RayBackend:
         pending = {task.remote(fn, chunk): chunk for chunk in chunks}
         try:
             while pending:
-                ready, _ = ray.wait(list(pending), num_returns=1)
+                # a bounded wait: Python gets control back every second, so Ctrl-C and a
+                # test's timeout act even while a task hangs (seen once in a full test run)
+                ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+                if not ready:
+                    continue
                 more, _ = ray.wait([r for r in pending if r not in ready],
                                    num_returns=len(pending) - len(ready), timeout=0)
                 for ref in ready + more:
