@@ -287,3 +287,23 @@ def test_true_lidar_range_is_the_full_matrix_formula_bit_for_bit():
         ref = lidar_true_range((v.x, v.y, v.z), rot_body_to_world(v.roll, v.pitch, v.yaw),
                                (cx, cy), ztop, (w.pad_half_x, w.pad_half_y))
         assert w.true_lidar_range() == ref
+
+
+def test_a_beacon_far_outside_the_view_is_never_drawn():
+    """The rolling shutter's exposure row of a beacon off the sensor is the nearest row: the
+    frame's readout bounds every exposure time. Unbounded, a beacon 75° off the axis took its
+    row from the distortion polynomial (thousands of rows), its exposure time seconds away, and
+    was drawn from the pose extrapolated that far with the body rates: phantom detections of a
+    deck 9.5 m away (paper_translating seed 100005), which the stack then chased."""
+    w = World(calm(), seed=3)
+    cx, cy = w.scenario.apron.position_m
+    v = w.vehicle
+    drawn = 0
+    for k in range(200):
+        a = 2.0 * math.pi * k / 200
+        place(w, cx + 9.5 * math.cos(a), cy + 9.5 * math.sin(a), 3.0)
+        v.vx, v.vy = 3.0 * math.cos(a), 3.0 * math.sin(a)
+        v._roll_rate, v._pitch_rate, v._yaw_rate = (1.5 * math.sin(3 * a), 1.5 * math.cos(5 * a),
+                                                   0.8)
+        drawn += len(w._render_frame(10.0, 10.02))
+    assert drawn == 0

@@ -725,6 +725,10 @@ class World:
         d = (beacon[0] - pos[0], beacon[1] - pos[1], beacon[2] - pos[2])
         uv = cam_true.project_optical(*cam_true.optical(r, d[0], d[1], d[2]))
         row = uv[1] if uv is not None else 0.5 * cam_true.height_px
+        # a beacon off the sensor has no row of its own: the nearest row (the readout bounds
+        # every exposure; unbounded, a point far outside the view read an exposure seconds
+        # away and was drawn from a pose extrapolated that far: phantom detections)
+        row = min(max(row, 0.0), cam_true.height_px - 1.0)
         te = t_k + cm.exposure_offset_s(row)
         beacon = self._beacon_at(te)
         pos, r = self._pose_back(t - te)
