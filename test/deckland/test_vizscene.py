@@ -130,7 +130,7 @@ def test_inputs_are_decoded_from_the_graph_messages():
 
 def test_png_of_a_scene(tmp_path):
     out = tmp_path / 'scene.png'
-    viz.render_png(full_state(), str(out), 'test')
+    vizscene.render_png(full_state(), str(out), 'test')
     assert out.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and out.stat().st_size > 20_000
 
 

@@ -250,3 +250,17 @@ def test_an_outcome_of_another_simulation_is_not_ours():
     out, why = parse_outcome('[1, 2]', mine)
     assert why == '' and out['reason'].startswith('unparsable outcome')
     assert parse_outcome('not json', {})[0]['reason'] == 'unparsable outcome: not json'
+
+
+def test_report_modes_are_timed_from_the_trigger_and_end_at_the_touchdown():
+    """vehicle/mode rows from 0.5 s before the trigger, timed from it; a firmware's own rows
+    up to the touchdown only (its land detector switches after it)."""
+    from deckland.graph.mission_report import bridge_modes, firmware_modes
+
+    seen = [(9.0, 'POSCTL'), (9.7, 'OFFBOARD'), (30.0, 'AUTO.LAND')]
+    assert bridge_modes(seen, 10.0) == [{'t_s': -0.3, 'mode': 'OFFBOARD'},
+                                        {'t_s': 20.0, 'mode': 'AUTO.LAND'}]
+    assert [r['t_s'] for r in bridge_modes(seen, None)] == [0.0, 0.0, 0.0]
+    fw = [{'t_s': 1.0, 'mode': 'OFFBOARD', 'x': 1}, {'t_s': 25.0, 'mode': 'AUTO.LAND'}]
+    assert firmware_modes(fw, 10.0, 30.0) == [{'t_s': 1.0, 'mode': 'OFFBOARD'}]
+    assert len(firmware_modes(fw, 10.0, None)) == 2

@@ -41,6 +41,23 @@ def failsafe_fields(modes: list[dict[str, Any]], report: dict[str, Any]) -> dict
     return {}
 
 
+def bridge_modes(seen: list[tuple[float, str]],
+                 t_trigger: float | None) -> list[dict[str, Any]]:
+    """The autopilot modes ``vehicle/mode`` showed, ``(monotonic s, mode)``, as report rows
+    timed from the landing trigger (from 0.5 s before it; all, untimed, without one)."""
+    return [{'t_s': round(t - (t_trigger or t), 3), 'mode': m} for t, m in seen
+            if t_trigger is None or t >= t_trigger - 0.5]
+
+
+def firmware_modes(modes: list[dict[str, Any]], t_trigger: float | None,
+                   t_outcome: float | None) -> list[dict[str, Any]]:
+    """A firmware's own mode rows (``t_s`` from the trigger; the operator's view: the bridge
+    may be the node killed) up to the touchdown; after it the land detector or the offboard
+    loss may switch, which is not the mission's doing."""
+    return [{'t_s': r['t_s'], 'mode': r['mode']} for r in modes
+            if t_outcome is None or t_trigger is None or r['t_s'] <= t_outcome - t_trigger]
+
+
 def parse_outcome(text: str, expect: dict[str, Any]) -> tuple[dict[str, Any] | None, str]:
     """A ``sim/outcome`` message: ``(outcome, '')``, ``(None, 'foreign')`` for another
     simulation's (a key of ``expect`` differs: another graph on the ROS domain), or an

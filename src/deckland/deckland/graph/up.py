@@ -21,7 +21,9 @@ from typing import Any
 from deckland.graph.mission_report import (
     EXIT_CODES,
     KillSchedule,
+    bridge_modes,
     failsafe_fields,
+    firmware_modes,
     parse_outcome,
     summary_lines,
 )
@@ -498,19 +500,11 @@ def _run_up(args: argparse.Namespace, hardware: bool, scenario, graph: dict[str,
         if view is not None:
             with contextlib.suppress(Exception):
                 view.stop()
+        modes = [] if monitor is None else bridge_modes(monitor.vehicle_modes, t_trigger)
         if monitor is not None:
-            modes = [{'t_s': round(t - (t_trigger or t), 3), 'mode': m}
-                     for t, m in monitor.vehicle_modes
-                     if t_trigger is None or t >= t_trigger - 0.5]
             monitor.close()
-        else:
-            modes = []
         if px4_report is not None:
-            # PX4's own modes (the operator's view: the bridge may be the node killed) up to
-            # the touchdown; after it the land detector or the offboard loss may switch
-            modes = [{'t_s': m['t_s'], 'mode': m['mode']} for m in px4_report['modes']
-                     if t_outcome is None or t_trigger is None
-                     or m['t_s'] <= t_outcome - t_trigger]
+            modes = firmware_modes(px4_report['modes'], t_trigger, t_outcome)
         for s, h in old.items():
             signal.signal(s, h)
         report = _finish_report(report, args, hardware, orch, injected, modes,

@@ -4,7 +4,8 @@
 its own: every topic of the graph is forwarded as it arrives, CDR bytes untouched, on a
 channel with its ``ros2msg`` schema (:func:`deckland.ros.rosio.message_definition`), and a
 ``SceneUpdate`` (:mod:`deckland.graph.vizscene`) goes out on :data:`SCENE_TOPIC` at ``rate_hz``.
-:func:`render_png` draws the same scene from a recorded bag with matplotlib. How to open it
+:func:`scene_from_bag` rebuilds the scene from a recorded bag for
+:func:`deckland.graph.vizscene.render_png`. How to open it
 in Foxglove: ``src/deckland/README-viz.md``.
 """
 
@@ -21,9 +22,10 @@ from deckland.graph.vizscene import (
     SCENE_INPUTS,
     Item,
     SceneState,
-    apply,
+    apply_latest,
     build_scene,
     relative_name,
+    render_png,
 )
 from deckland.ros import rosio
 
@@ -225,13 +227,7 @@ class LiveView:
 
         latest = dict(self._latest)
         self._latest.clear()
-        for rel in SCENE_INPUTS:          # order: the truth apron before the estimate
-            if rel in latest:
-                cls, data = latest[rel]
-                try:
-                    apply(self.scene, rel, deserialize_message(data, cls))
-                except Exception:         # a bad message never stops the view
-                    continue
+        apply_latest(self.scene, latest, lambda m: deserialize_message(m[1], m[0]))
         self._scene_channel.log(scene_update(build_scene(self.scene), time.time()),
                                 log_time=time.time_ns())
         self.scene_updates += 1
@@ -253,75 +249,13 @@ def scene_from_bag(bag_dir: str, at_s: float | None = None,
         raise ValueError(f'{bag_dir}: none of the scene topics {SCENE_INPUTS}')
     t0, t1 = info.start_ns, info.end_ns
     t_ns = t0 + (t1 - t0) // 2 if at_s is None else t0 + int(at_s * 1e9)
-    msgs = bag.iter_messages(bag_dir, topics)
     latest: dict[str, tuple[str, bytes]] = {}
-    for topic, msgtype, log_ns, data in msgs:
+    for topic, msgtype, log_ns, data in bag.iter_messages(bag_dir, topics):
         if log_ns > t_ns:
             break
-        rel = relative_name(topic)
-        if rel is not None:
-            latest[rel] = (msgtype, data)
-    for rel in SCENE_INPUTS:
-        if rel in latest:
-            msgtype, data = latest[rel]
-            apply(scene, rel, store.deserialize_cdr(data, msgtype))
+        latest[str(relative_name(topic))] = (msgtype, data)
+    apply_latest(scene, latest, lambda m: store.deserialize_cdr(m[1], m[0]))
     return scene, (t_ns - t0) * 1e-9
-
-
-def render_png(scene: SceneState, out: str, title: str = '') -> None:
-    """Draw the scene items (3-D, matplotlib) into ``out``."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    from deckland.graph.vizscene import rectangle
-
-    fig = plt.figure(figsize=(8, 6.5))
-    ax = fig.add_subplot(projection='3d')
-    for it in build_scene(scene):
-        if it.kind == 'cube' and it.entity == 'deck':
-            corners = rectangle(it.position, (it.size[0], it.size[1]), it.orientation)
-            ax.add_collection3d(Poly3DCollection([corners], color=it.color[:3], alpha=0.35))
-        elif it.kind == 'cube':     # the vehicle: its outline and its heading
-            corners = rectangle(it.position, (it.size[0], it.size[1]), it.orientation)
-            xs, ys, zs = zip(*(*corners, corners[0]), strict=True)
-            ax.plot(xs, ys, zs, color=it.color[:3], lw=2.5, label='vehicle (vehicle/odom)')
-        elif it.kind == 'line':
-            xs, ys, zs = zip(*(*it.points, it.points[0]), strict=True)
-            label = {'deck': 'pad outline', 'estimate': 'estimated apron, 2σ',
-                     'footprint': 'camera footprint'}[it.entity]
-            ax.plot(xs, ys, zs, color=it.color[:3], lw=1.5, label=label)
-        elif it.kind == 'sphere':
-            label = {'beacon': 'beacon (truth)', 'estimate': 'apron estimate',
-                     'setpoint': 'planner setpoint'}[it.entity]
-            ax.scatter(*([c] for c in it.position), color=it.color[:3], s=40, label=label)
-        elif it.kind == 'arrow':
-            from deckland_common.frames import mat_vec, quaternion_to_euler, rot_body_to_world
-            d = mat_vec(rot_body_to_world(*quaternion_to_euler(*it.orientation)),
-                        (it.size[0], 0.0, 0.0))
-            ax.quiver(*it.position, *d, color=it.color[:3])
-        elif it.kind == 'text':
-            ax.text(*it.position, it.text, color='black')
-    ax.set_xlabel('x east [m]')
-    ax.set_ylabel('y north [m]')
-    ax.set_zlabel('z up [m]')
-    pts = [it.position for it in build_scene(scene)] + [
-        p for it in build_scene(scene) for p in it.points]
-    if pts:
-        cx = [p[0] for p in pts]
-        cy = [p[1] for p in pts]
-        half = max(max(cx) - min(cx), max(cy) - min(cy), 1.0) / 2.0 + 0.3
-        mx, my = (max(cx) + min(cx)) / 2.0, (max(cy) + min(cy)) / 2.0
-        ax.set_xlim(mx - half, mx + half)
-        ax.set_ylim(my - half, my + half)
-        ax.set_zlim(0.0, max(max(p[2] for p in pts) + 0.3, 1.0))
-    ax.legend(loc='upper left', fontsize=8)
-    if title:
-        ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
 
 
 # --- command -------------------------------------------------------------------------------

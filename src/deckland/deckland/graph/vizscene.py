@@ -5,7 +5,7 @@
 :class:`Item` s in ``map`` (ENU): the deck plane with its tilt and pad outline, the beacon, the
 vehicle, the estimated apron with its 2-σ covariance ellipse, the planner setpoint and the
 camera footprint on the deck plane. :mod:`deckland.graph.viz` converts the items to a Foxglove
-``SceneUpdate``; :func:`deckland.graph.viz.render_png` draws the same items with matplotlib.
+``SceneUpdate``; :func:`render_png` draws the same items with matplotlib.
 """
 
 from __future__ import annotations
@@ -230,3 +230,69 @@ def relative_name(topic: str) -> str | None:
         if topic == '/' + rel or topic.endswith('/' + rel):
             return rel
     return None
+
+
+def apply_latest(state: SceneState, latest: dict[str, Any], decode: Any) -> None:
+    """Apply the latest raw message of each scene input (``latest``: relative name → raw,
+    ``decode(raw)`` → message) in :data:`SCENE_INPUTS` order (the truth apron before the
+    estimate); one that cannot be decoded or applied is skipped (a bad message never stops
+    the view or the snapshot)."""
+    for rel in SCENE_INPUTS:
+        if rel in latest:
+            try:
+                apply(state, rel, decode(latest[rel]))
+            except Exception:
+                continue
+
+
+def render_png(scene: SceneState, out: str, title: str = '') -> None:
+    """Draw the scene items (3-D, matplotlib) into ``out``."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    fig = plt.figure(figsize=(8, 6.5))
+    ax = fig.add_subplot(projection='3d')
+    for it in build_scene(scene):
+        if it.kind == 'cube' and it.entity == 'deck':
+            corners = rectangle(it.position, (it.size[0], it.size[1]), it.orientation)
+            ax.add_collection3d(Poly3DCollection([corners], color=it.color[:3], alpha=0.35))
+        elif it.kind == 'cube':     # the vehicle: its outline and its heading
+            corners = rectangle(it.position, (it.size[0], it.size[1]), it.orientation)
+            xs, ys, zs = zip(*(*corners, corners[0]), strict=True)
+            ax.plot(xs, ys, zs, color=it.color[:3], lw=2.5, label='vehicle (vehicle/odom)')
+        elif it.kind == 'line':
+            xs, ys, zs = zip(*(*it.points, it.points[0]), strict=True)
+            label = {'deck': 'pad outline', 'estimate': 'estimated apron, 2σ',
+                     'footprint': 'camera footprint'}[it.entity]
+            ax.plot(xs, ys, zs, color=it.color[:3], lw=1.5, label=label)
+        elif it.kind == 'sphere':
+            label = {'beacon': 'beacon (truth)', 'estimate': 'apron estimate',
+                     'setpoint': 'planner setpoint'}[it.entity]
+            ax.scatter(*([c] for c in it.position), color=it.color[:3], s=40, label=label)
+        elif it.kind == 'arrow':
+            d = mat_vec(rot_body_to_world(*quaternion_to_euler(*it.orientation)),
+                        (it.size[0], 0.0, 0.0))
+            ax.quiver(*it.position, *d, color=it.color[:3])
+        elif it.kind == 'text':
+            ax.text(*it.position, it.text, color='black')
+    ax.set_xlabel('x east [m]')
+    ax.set_ylabel('y north [m]')
+    ax.set_zlabel('z up [m]')
+    pts = [it.position for it in build_scene(scene)] + [
+        p for it in build_scene(scene) for p in it.points]
+    if pts:
+        cx = [p[0] for p in pts]
+        cy = [p[1] for p in pts]
+        half = max(max(cx) - min(cx), max(cy) - min(cy), 1.0) / 2.0 + 0.3
+        mx, my = (max(cx) + min(cx)) / 2.0, (max(cy) + min(cy)) / 2.0
+        ax.set_xlim(mx - half, mx + half)
+        ax.set_ylim(my - half, my + half)
+        ax.set_zlim(0.0, max(max(p[2] for p in pts) + 0.3, 1.0))
+    ax.legend(loc='upper left', fontsize=8)
+    if title:
+        ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
