@@ -12,7 +12,6 @@ import os
 from pathlib import Path
 import random
 import signal
-import statistics
 import subprocess
 import sys
 import threading
@@ -150,8 +149,14 @@ def test_topic_echo_hz_and_list_against_a_50hz_publisher(ros_context):
     assert stats.rate_hz <= 51.0                          # never faster than the 50 Hz timer
     gaps = [b - a for a, b in itertools.pairwise(sent)]
     assert stats.min_s <= 1.0 / stats.rate_hz <= stats.max_s
-    assert stats.max_s == pytest.approx(max(gaps), abs=0.01)
-    assert stats.std_s == pytest.approx(statistics.pstdev(gaps), abs=0.005)
+    # The tool measures arrivals (rmw reception stamps), the talker records sends: a
+    # transport stall (a reliable sample re-sent, a starved receive thread) delays some
+    # arrivals and bunches the next ones, widening the arrival gaps but not the mean
+    # (CI once saw a 0.31 s arrival gap against a 35 ms send gap). The exact max/std of
+    # given stamps is test_tools_offline's; here only what a stall cannot change.
+    assert stats.max_s >= max(gaps) - 0.01
+    assert stats.max_s <= (sent[-1] - sent[0]) + 0.05
+    assert 0.0 <= stats.std_s <= stats.max_s
     assert 'average rate: ' in h.out.getvalue()
     assert time.monotonic() - t0 < 6.0
 
