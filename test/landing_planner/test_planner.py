@@ -129,7 +129,8 @@ def test_descend_pauses_and_realigns_when_drifting_out_of_the_hysteresis_radius(
 
 
 def test_descend_to_final_when_vertically_close_and_final_continues_blind():
-    d = aligned_driver()
+    # a committed final descent (here: untimed, committed on entry) goes on blind
+    d = aligned_driver(timed_touchdown=False)
     d.run(0.6)
     d.height = 0.49
     d.step()
@@ -140,6 +141,45 @@ def test_descend_to_final_when_vertically_close_and_final_continues_blind():
     assert d.out.mode is Mode.FINAL             # keeps descending
     assert d.out.setpoint_m == sp and d.out.velocity_ff_mps == (0.0, 0.0)
     assert d.out.z_d_dot_mps < 0.0
+
+
+def test_final_hold_climbs_when_the_target_is_lost_and_searches_after_three_timeouts():
+    # the timed FINAL hold (not committed) waits for a window: blind there, the estimate
+    # drifts with the wind off the pad (gusty seed 100020). It climbs to the final-approach
+    # height first (a wider view), then searches as DESCEND does.
+    d = aligned_driver(commit_timeout_s=60.0)   # (no prediction here: never a window)
+    p = d.p.params
+
+    def follow(duration, until=None):         # the vehicle flies the height reference
+        end = d.t + duration
+        while d.t < end - 1e-9:
+            d.height = d.out.z_d_m
+            d.step()
+            if until is not None and d.out.mode is until:
+                break
+        return d.out
+
+    d.run(0.6)
+    assert d.out.mode is Mode.DESCEND
+    follow(10.0, until=Mode.FINAL)
+    assert d.out.mode is Mode.FINAL and not d.p._l.committed
+    follow(6.0)                                 # settle onto the hold height
+    hold = p.gear_height_m + p.commit_clearance_m
+    assert d.out.z_d_m == pytest.approx(hold, abs=0.01)
+    d.beacon = None
+    follow(p.target_lost_timeout_s - 0.05)
+    assert d.out.mode is Mode.FINAL and d.out.z_d_m == pytest.approx(hold, abs=0.01)
+    follow(1.0)
+    assert d.out.mode is Mode.FINAL and d.out.z_d_dot_mps > 0.0      # lost: climbs
+    d.beacon = (0.02, 0.0)                      # seen again: back down to the hold
+    follow(6.0)
+    assert d.out.mode is Mode.FINAL
+    assert d.out.z_d_m == pytest.approx(hold, abs=0.01)
+    d.beacon = None
+    out = follow(3.0 * p.target_lost_timeout_s + 0.1, until=Mode.SEARCH)
+    assert out.mode is Mode.SEARCH and 'FINAL hold' in out.reason
+    assert d.p.searches == 1
+    assert max(d.height, out.z_d_m) > hold + 0.1    # it had climbed toward 0.5 m
 
 
 def test_final_to_landed_by_height_speed_and_pressing_reference_for_the_hold_time():

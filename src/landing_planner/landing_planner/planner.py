@@ -60,6 +60,7 @@ _AIRBORNE_MODES = (*_LANDING_MODES, Mode.TAKEOFF, Mode.HOLD)
 _DECK_MODES = (Mode.ALIGN, Mode.DESCEND, Mode.FINAL)   # over the deck: align the heading
 _MOVING_MPS = 0.2     # a deck once tracked faster than this is "moving" (no Step 14 landing)
 _BEST_WAIT_S = 3.0     # FINAL hold past its timeout: wait this long at most for the best commit
+_HOLD_LOST_FACTOR = 3.0   # FINAL hold: lost this many target_lost_timeout_s → search
 
 
 @dataclass(frozen=True, slots=True)
@@ -1142,6 +1143,14 @@ class _Final(_State):
             return
         if pl._l.committed:
             pl._watch_commit(tk)
+        elif tk.lost_for > _HOLD_LOST_FACTOR * pl.params.target_lost_timeout_s:
+            # the hold waits for a window and may wait seconds: blind, the estimate drifts
+            # with the wind until the vehicle leaves the pad (gusty seed 100020: 4 s blind at
+            # 12 cm clearance, then off the apron's edge). Only a committed descent goes on
+            # blind (PX4 PLD_FAPPR_ALT); a hold first climbs to the final-approach height
+            # (vertical()), then looks for the deck again, as DESCEND does
+            pl._search_or_fallback(tk.t_s, f'target lost for {tk.lost_for:.1f} s in the '
+                                   'FINAL hold (Step 7)')
         else:
             pl._try_commit(tk)
 
@@ -1153,6 +1162,9 @@ class _Final(_State):
             return pl._world_ramp()
         p = pl.params
         if not pl._l.committed:
+            if tk.lost_for > p.target_lost_timeout_s:
+                # lost in the hold: up to where the camera's footprint is wider (run())
+                return p.final_approach_height_m, p.descent_speed_mps
             return p.gear_height_m + p.commit_clearance_m, p.final_speed_mps
         return p.gear_height_m - p.final_press_m, p.final_speed_mps
 
