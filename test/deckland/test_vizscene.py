@@ -185,3 +185,14 @@ def test_layout_shows_the_scene_figures_and_mode_on_real_fields():
     for path in paths:
         topic, *fields = path.split('.')
         _resolve(store, LAYOUT_TYPES[topic], fields)
+
+
+def test_a_snapshot_rebuilds_the_scene_from_the_golden_bag():
+    import pathlib
+
+    from deckland.graph.vizscene import scene_from_bag
+    bag_dir = pathlib.Path(__file__).parents[1] / 'fixtures' / 'golden_paper'
+    scene, t = scene_from_bag(str(bag_dir), pad_size_m=(1.05, 0.85))
+    assert t > 0.0 and scene.vehicle_m is not None
+    assert all(math.isfinite(c) for c in scene.vehicle_m)
+    assert scene.estimate_m is not None and all(math.isfinite(c) for c in scene.estimate_m)

@@ -264,3 +264,24 @@ def test_report_modes_are_timed_from_the_trigger_and_end_at_the_touchdown():
     fw = [{'t_s': 1.0, 'mode': 'OFFBOARD', 'x': 1}, {'t_s': 25.0, 'mode': 'AUTO.LAND'}]
     assert firmware_modes(fw, 10.0, 30.0) == [{'t_s': 1.0, 'mode': 'OFFBOARD'}]
     assert len(firmware_modes(fw, 10.0, None)) == 2
+
+
+def test_finish_report_adds_what_deckland_up_saw_and_keeps_the_outcome():
+    from deckland.graph.mission_report import finish_report
+    outcome = {'outcome': 'deck', 'crash': False, 'seed': 7}
+    modes = [{'t_s': 0.0, 'mode': 'OFFBOARD'}, {'t_s': 9.0, 'mode': 'AUTO.LAND'}]
+    r = finish_report(outcome, scenario='paper', seed=3, composed=True, modes=modes,
+                      injected=[], device_problems=[], crashed=[], code=0,
+                      bag={'path': 'b', 'messages': 5})
+    assert r is not outcome and 'hardware' not in outcome
+    assert r['scenario'] == 'paper' and r['seed'] == 7          # the simulator's seed wins
+    assert r['hardware'] is False and r['composed'] is True and r['safe'] is True
+    assert r['failsafe'] == 'AUTO.LAND' and r['exit_status'] == 0
+    assert r['bag'] == {'path': 'b', 'messages': 5}
+    assert 'device_problems' not in r and 'crashed_nodes' not in r
+    hw = finish_report({}, scenario=None, seed=None, composed=False, modes=[], injected=[],
+                       device_problems=['pixy: cannot open'], crashed=[{'name': 'x'}], code=3,
+                       bag=None)
+    assert hw['hardware'] is True and 'scenario' not in hw and 'bag' not in hw
+    assert hw['device_problems'] == ['pixy: cannot open']
+    assert hw['crashed_nodes'] == [{'name': 'x'}]

@@ -41,6 +41,33 @@ def failsafe_fields(modes: list[dict[str, Any]], report: dict[str, Any]) -> dict
     return {}
 
 
+def finish_report(report: dict[str, Any], *, scenario: str | None, seed: int | None,
+                  composed: bool, modes: list[dict[str, Any]], injected: list,
+                  device_problems: list, crashed: list[dict[str, Any]], code: int,
+                  bag: dict[str, Any] | None) -> dict[str, Any]:
+    """The run's report: the simulator's outcome ``report`` plus what ``deckland up`` saw
+    (``scenario``/``seed`` None on hardware); a new dict."""
+    report = dict(report)
+    if scenario is not None:
+        report.setdefault('scenario', scenario)
+        report.setdefault('seed', seed)
+    report['hardware'] = scenario is None
+    report['composed'] = composed
+    if 'crash' in report:
+        report['safe'] = not report['crash']
+    report.update(failsafe_fields(modes, report))
+    report['autopilot_modes'] = modes
+    report['injected_faults'] = injected
+    if device_problems:
+        report['device_problems'] = device_problems
+    if crashed:
+        report['crashed_nodes'] = crashed
+    report['exit_status'] = code
+    if bag is not None:
+        report['bag'] = bag
+    return report
+
+
 def bridge_modes(seen: list[tuple[float, str]],
                  t_trigger: float | None) -> list[dict[str, Any]]:
     """The autopilot modes ``vehicle/mode`` showed, ``(monotonic s, mode)``, as report rows

@@ -22,7 +22,7 @@ from deckland.graph.mission_report import (
     EXIT_CODES,
     KillSchedule,
     bridge_modes,
-    failsafe_fields,
+    finish_report,
     firmware_modes,
     parse_outcome,
     summary_lines,
@@ -586,32 +586,21 @@ def _start_recorder(record: pathlib.Path, monitor: MissionMonitor, wait_topics: 
 def _finish_report(report: dict[str, Any], args, hardware: bool, orch: Orchestrator,
                    injected: list, modes: list, record: pathlib.Path | None,
                    code: int) -> dict[str, Any]:
-    report = dict(report)
-    if not hardware:
-        report.setdefault('scenario', args.scenario)
-        report.setdefault('seed', args.seed)
-    report['hardware'] = hardware
-    report['composed'] = bool(getattr(args, 'composed', False))
-    if 'crash' in report:
-        report['safe'] = not report['crash']
-    report.update(failsafe_fields(modes, report))
-    report['autopilot_modes'] = modes
-    report['injected_faults'] = injected
-    if orch.device_problems():
-        report['device_problems'] = orch.device_problems()
-    crashed = [e.as_dict() for e in orch.exits if not e.injected]
-    if crashed:
-        report['crashed_nodes'] = crashed
-    report['exit_status'] = code
+    """The run's facts from the orchestrator and the bag, folded in by ``finish_report``."""
+    bag = None
     if record is not None:
         try:
             from deckland.ros.bag import bag_info
             info = bag_info(record)
-            report['bag'] = {'path': str(record), 'messages': info.message_count,
-                             'topics': len(info.topics), 'duration_s': round(info.duration_s, 3)}
+            bag = {'path': str(record), 'messages': info.message_count,
+                   'topics': len(info.topics), 'duration_s': round(info.duration_s, 3)}
         except Exception as exc:   # reported, never fatal at the end of a run
-            report['bag'] = {'path': str(record), 'error': str(exc)}
-    return report
+            bag = {'path': str(record), 'error': str(exc)}
+    return finish_report(
+        report, scenario=None if hardware else args.scenario,
+        seed=None if hardware else args.seed, composed=bool(getattr(args, 'composed', False)),
+        modes=modes, injected=injected, device_problems=orch.device_problems(),
+        crashed=[e.as_dict() for e in orch.exits if not e.injected], code=code, bag=bag)
 
 
 def register(sub) -> None:

@@ -4,9 +4,9 @@
 its own: every topic of the graph is forwarded as it arrives, CDR bytes untouched, on a
 channel with its ``ros2msg`` schema (:func:`deckland.ros.rosio.message_definition`), and a
 ``SceneUpdate`` (:mod:`deckland.graph.vizscene`) goes out on :data:`SCENE_TOPIC` at ``rate_hz``.
-:func:`scene_from_bag` rebuilds the scene from a recorded bag for
-:func:`deckland.graph.vizscene.render_png`. How to open it
-in Foxglove: ``src/deckland/README-viz.md``.
+``deckland viz --snapshot`` renders a recorded bag's scene with the pure
+:func:`deckland.graph.vizscene.scene_from_bag` and :func:`~deckland.graph.vizscene.render_png`.
+How to open it in Foxglove: ``src/deckland/README-viz.md``.
 """
 
 from __future__ import annotations
@@ -19,13 +19,14 @@ import time
 from typing import Any
 
 from deckland.graph.vizscene import (
-    SCENE_INPUTS,
     Item,
     SceneState,
     apply_latest,
     build_scene,
+    pad_size_of,
     relative_name,
     render_png,
+    scene_from_bag,
 )
 from deckland.ros import rosio
 
@@ -233,40 +234,7 @@ class LiveView:
         self.scene_updates += 1
 
 
-# --- snapshot from a bag -------------------------------------------------------------------
-
-def scene_from_bag(bag_dir: str, at_s: float | None = None,
-                   pad_size_m: tuple[float, float] | None = None) -> tuple[SceneState, float]:
-    """The scene state at ``at_s`` seconds after the bag's first message (default: the
-    midpoint) from the latest message of each scene input before it; returns (state, t)."""
-    from deckland.ros import bag
-
-    store = rosio.typestore()
-    scene = SceneState() if pad_size_m is None else SceneState(pad_size_m=pad_size_m)
-    info = bag.bag_info(bag_dir)
-    topics = [t.name for t in info.topics if relative_name(t.name) is not None]
-    if not topics:
-        raise ValueError(f'{bag_dir}: none of the scene topics {SCENE_INPUTS}')
-    t0, t1 = info.start_ns, info.end_ns
-    t_ns = t0 + (t1 - t0) // 2 if at_s is None else t0 + int(at_s * 1e9)
-    latest: dict[str, tuple[str, bytes]] = {}
-    for topic, msgtype, log_ns, data in bag.iter_messages(bag_dir, topics):
-        if log_ns > t_ns:
-            break
-        latest[str(relative_name(topic))] = (msgtype, data)
-    apply_latest(scene, latest, lambda m: store.deserialize_cdr(m[1], m[0]))
-    return scene, (t_ns - t0) * 1e-9
-
-
 # --- command -------------------------------------------------------------------------------
-
-def pad_size_of(scenario: str) -> tuple[float, float]:
-    """The apron size of a scenario (name or path)."""
-    from deck_simulator.scenario import load_scenario
-
-    sx, sy = load_scenario(scenario).apron.size_m
-    return (float(sx), float(sy))
-
 
 def add_server_args(p: argparse.ArgumentParser) -> None:
     p.add_argument('--host', default=DEFAULT_HOST,

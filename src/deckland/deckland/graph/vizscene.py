@@ -296,3 +296,36 @@ def render_png(scene: SceneState, out: str, title: str = '') -> None:
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
+
+
+# --- a snapshot from a bag (rosbags, no ROS runtime) ------------------------------------
+
+def scene_from_bag(bag_dir: str, at_s: float | None = None,
+                   pad_size_m: tuple[float, float] | None = None) -> tuple[SceneState, float]:
+    """The scene state at ``at_s`` seconds after the bag's first message (default: the
+    midpoint) from the latest message of each scene input before it; returns (state, t)."""
+    from deckland.ros import bag, rosio
+
+    store = rosio.typestore()
+    scene = SceneState() if pad_size_m is None else SceneState(pad_size_m=pad_size_m)
+    info = bag.bag_info(bag_dir)
+    topics = [t.name for t in info.topics if relative_name(t.name) is not None]
+    if not topics:
+        raise ValueError(f'{bag_dir}: none of the scene topics {SCENE_INPUTS}')
+    t0, t1 = info.start_ns, info.end_ns
+    t_ns = t0 + (t1 - t0) // 2 if at_s is None else t0 + int(at_s * 1e9)
+    latest: dict[str, tuple[str, bytes]] = {}
+    for topic, msgtype, log_ns, data in bag.iter_messages(bag_dir, topics):
+        if log_ns > t_ns:
+            break
+        latest[str(relative_name(topic))] = (msgtype, data)
+    apply_latest(scene, latest, lambda m: store.deserialize_cdr(m[1], m[0]))
+    return scene, (t_ns - t0) * 1e-9
+
+
+def pad_size_of(scenario: str) -> tuple[float, float]:
+    """The apron size of a scenario (name or path)."""
+    from deck_simulator.scenario import load_scenario
+
+    sx, sy = load_scenario(scenario).apron.size_m
+    return (float(sx), float(sy))
