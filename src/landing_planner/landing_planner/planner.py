@@ -1164,7 +1164,7 @@ class _Final(_State):
         if not pl._l.committed:
             if tk.lost_for > p.target_lost_timeout_s:
                 # lost in the hold: up to where the camera's footprint is wider (run())
-                return p.final_approach_height_m, p.descent_speed_mps
+                return p.final_approach_height_m, p.vertical_speed_mps
             return p.gear_height_m + p.commit_clearance_m, p.final_speed_mps
         return p.gear_height_m - p.final_press_m, p.final_speed_mps
 
