@@ -103,7 +103,7 @@ def one_cycle(i: int, args, work: pathlib.Path, env: dict) -> dict:
              'touchdown_speed_mps': report.get('touchdown_speed_mps'),
              'tracebacks': len(bad), 'bad_lines': bad[:5], 'orphans': orphans,
              'bag': bag}
-    if code not in (0, 1) or bad or orphans or bag.get('ok') is False:
+    if code != 0 or bad or orphans or bag.get('ok') is False:   # a failed landing too
         keep = work / f'cycle{i}.log'
         keep.write_text(out)
         cycle['log'] = str(keep)
