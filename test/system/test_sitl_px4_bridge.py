@@ -190,7 +190,11 @@ def test_bridge_flies_px4_sih_through_the_nine_findings(ros_context):
             assert 'already' not in res.message and not core.in_offboard()
             names = [m.data for m in modes]
             assert 'AUTO.LOITER' in names and 'AUTO.LAND' in names
-            assert not [n for n in names if n.startswith('UNKNOWN') or n[5:].isdigit()], names
+            # every mode PX4 named is decoded; custom_mode 0 is PX4's own "no MAVLink mapping"
+            # value (get_px4_custom_mode leaves it 0 for an unmapped nav_state), seen once on
+            # a loaded CI machine between OFFBOARD and the offboard-loss action
+            assert not [n for n in names if (n.startswith('UNKNOWN') and n != 'UNKNOWN(0)')
+                        or n[5:].isdigit()], names
             print(f'PX4 SIH ready {t_ready:.1f} s after spawn; hover measured {hover:.4f} '
                   f'(MPC_THR_HOVER 0.5); PX4 CPU {px4.cpu_s():.1f} s')
         finally:
