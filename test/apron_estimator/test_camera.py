@@ -7,6 +7,8 @@ from apron_estimator.camera import CameraModel, CameraParams
 from deckland_common.frames import mat_t_vec, rot_body_to_world, world_to_body_xy
 import pytest
 
+#: the pinhole of (29)-(30): these tests are about the geometry (the lens: test_lens_*)
+PINHOLE = {'k1': 0.0, 'k2': 0.0}
 FX = 160.0 / math.tan(math.radians(30.0))   # (W/2) / tan(fov_x / 2)
 FY = 100.0 / math.tan(math.radians(23.5))
 
@@ -31,7 +33,7 @@ def in_image(pix):
 
 
 def test_focal_length_uses_half_of_the_full_fov():
-    p = CameraParams()
+    p = CameraParams(**PINHOLE)
     assert p.fx_px == pytest.approx(FX)
     assert p.fy_px == pytest.approx(FY)
     # the image edge is at half the full FOV
@@ -41,7 +43,7 @@ def test_focal_length_uses_half_of_the_full_fov():
 
 
 def test_default_mount_image_top_is_the_nose():
-    cam = CameraModel()
+    cam = CameraModel(CameraParams(**PINHOLE))
     # beacon straight ahead of the nose (yaw 0 = east) appears above the centre
     pix = project((1.0, 0.0, -2.0), 0.0, 0.0, 0.0)
     assert pix[1] < 100.0 and pix[0] == pytest.approx(160.0)
@@ -53,7 +55,7 @@ def test_default_mount_image_top_is_the_nose():
 
 def test_round_trip_many_attitudes_and_heights():
     rng = random.Random(1234)
-    cam = CameraModel()
+    cam = CameraModel(CameraParams(**PINHOLE))
     n = 0
     worst = 0.0
     while n < 3000:
@@ -82,7 +84,7 @@ def test_round_trip_with_mount_offset_and_rotation():
     rng = random.Random(7)
     offset = (0.08, -0.03, -0.05)
     mount = (0.02, -0.05, 0.1)
-    cam = CameraModel(CameraParams(mount_x_m=offset[0], mount_y_m=offset[1],
+    cam = CameraModel(CameraParams(**PINHOLE, mount_x_m=offset[0], mount_y_m=offset[1],
                                    mount_z_m=offset[2], mount_roll_rad=mount[0],
                                    mount_pitch_rad=mount[1], mount_yaw_rad=mount[2]))
     n = 0
@@ -100,8 +102,8 @@ def test_round_trip_with_mount_offset_and_rotation():
 
 
 def test_mount_pitch_acts_like_vehicle_pitch():
-    tilted = CameraModel(CameraParams(mount_pitch_rad=0.2))
-    level = CameraModel()
+    tilted = CameraModel(CameraParams(**PINHOLE, mount_pitch_rad=0.2))
+    level = CameraModel(CameraParams(**PINHOLE))
     for px, py in ((30.0, 20.0), (160.0, 100.0), (300.0, 180.0)):
         assert tilted.relative_position(px, py, 2.0, 0.0, 0.0, 0.0) == pytest.approx(
             level.relative_position(px, py, 2.0, 0.0, 0.2, 0.0), abs=1e-12)
@@ -109,7 +111,7 @@ def test_mount_pitch_acts_like_vehicle_pitch():
 
 def test_quantised_pixels_give_mm_to_cm_level_errors():
     rng = random.Random(99)
-    cam = CameraModel()
+    cam = CameraModel(CameraParams(**PINHOLE))
     errs = []
     while len(errs) < 500:
         h = rng.uniform(0.3, 5.0)
@@ -127,7 +129,7 @@ def test_quantised_pixels_give_mm_to_cm_level_errors():
 
 def test_paper_exact_matches_29_30_at_zero_tilt():
     paper = CameraModel(CameraParams(paper_exact=True))
-    ours = CameraModel()
+    ours = CameraModel(CameraParams(**PINHOLE))
     tan_ax = math.tan(math.radians(30.0))
     tan_ay = math.tan(math.radians(23.5))
     for px, py, z, yaw in ((40.0, 30.0, 1.5, 0.0), (250.0, 170.0, 3.0, 2.0),
@@ -141,7 +143,7 @@ def test_paper_exact_matches_29_30_at_zero_tilt():
 
 def test_paper_exact_is_off_by_about_26_cm_at_10_deg_and_1p5_m():
     paper = CameraModel(CameraParams(paper_exact=True))
-    ours = CameraModel()
+    ours = CameraModel(CameraParams(**PINHOLE))
     h = 1.5
     for roll, pitch in ((0.0, math.radians(10.0)), (math.radians(10.0), 0.0)):
         for yaw in (0.0, 1.0, -2.5):
@@ -162,7 +164,7 @@ def test_printed_35_versus_ours():
         return s * x - c * y, c * x + s * y
 
     rng = random.Random(3)
-    cam = CameraModel()
+    cam = CameraModel(CameraParams(**PINHOLE))
     for _ in range(50):
         yaw = rng.uniform(-math.pi, math.pi)
         truth = (rng.uniform(-1, 1), rng.uniform(-1, 1))
@@ -183,14 +185,52 @@ def test_printed_35_versus_ours():
 
 
 def test_ray_missing_the_deck_returns_none():
-    cam = CameraModel()
+    cam = CameraModel(CameraParams(**PINHOLE))
     # rolled 80°: the top-left pixel looks above the horizon
     assert cam.relative_position(0.0, 0.0, 1.0, math.radians(80.0), 0.0, 0.0) is None
 
 
 @pytest.mark.parametrize('kwargs', [
     {'fov_x_deg': 0.0}, {'fov_y_deg': float('nan')}, {'width_px': -1.0},
-    {'cx_px': 400.0}, {'mount_pitch_rad': 4.0}, {'paper_exact': 1}])
+    {'cx_px': 400.0}, {'mount_pitch_rad': 4.0}, {'paper_exact': 1}, {'k1': float('inf')},
+    {'p2': 0.5}])
 def test_bad_params_raise_naming_the_field(kwargs):
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         CameraParams(**kwargs)
+
+
+def test_lens_the_default_is_the_pixy_lens_and_undistorts_its_pixels_exactly():
+    """A pixel imaged through the Pixy lens (deckland_common.lens.distort, the simulator's
+    model) comes back to the true offset to 1e-9, over the image and at any attitude."""
+    from deckland_common.lens import PIXY_K1, PIXY_K2, distort
+    cam = CameraModel()
+    assert (cam.params.k1, cam.params.k2) == (PIXY_K1, PIXY_K2)
+    rng = random.Random(7)
+    n = worst = 0
+    while n < 2000:
+        h = rng.uniform(0.2, 5.0)
+        roll, pitch = (math.radians(rng.uniform(-15.0, 15.0)) for _ in range(2))
+        yaw = rng.uniform(-math.pi, math.pi)
+        truth = (rng.uniform(-0.6, 0.6) * h, rng.uniform(-0.6, 0.6) * h)
+        pix = project((truth[0], truth[1], -h), roll, pitch, yaw)
+        if not in_image(pix):
+            continue
+        xd, yd = distort((pix[0] - 160.0) / FX, (pix[1] - 100.0) / FY, PIXY_K1, PIXY_K2,
+                         0.0, 0.0)
+        got = cam.relative_position(160.0 + FX * xd, 100.0 + FY * yd, h, roll, pitch, yaw)
+        n += 1
+        worst = max(worst, math.hypot(got[0] - truth[0], got[1] - truth[1]))
+    assert worst < 1e-9
+
+
+def test_lens_ignored_the_pixy_barrel_pulls_edge_offsets_in_by_a_tenth():
+    """Why the estimator undistorts: the pinhole reading of a Pixy pixel near the image edge
+    is ~10 % short (13 % at the wide edge): a loop gain below one, a drift at touchdown."""
+    from deckland_common.lens import PIXY_K1, PIXY_K2, distort
+    pinhole = CameraModel(CameraParams(**PINHOLE))
+    xd, yd = distort(0.0, -0.5, PIXY_K1, PIXY_K2, 0.0, 0.0)   # 0.5 m ahead at 1 m (optical y = −x)
+    short = pinhole.relative_position(160.0 + FX * xd, 100.0 + FY * yd, 1.0, 0.0, 0.0, 0.0)
+    assert short[0] == pytest.approx(0.5 * (1.0 + PIXY_K1 * 0.25 + PIXY_K2 * 0.0625))
+    assert 0.08 < 1.0 - short[0] / 0.5 < 0.12
+    assert CameraModel().relative_position(160.0 + FX * xd, 100.0 + FY * yd, 1.0, 0.0, 0.0,
+                                           0.0) == pytest.approx((0.5, 0.0), abs=1e-9)

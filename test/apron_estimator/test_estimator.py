@@ -14,6 +14,7 @@ from deckland_common.contract import (
     VerticalState,
 )
 from deckland_common.frames import mat_t_vec, rot_body_to_world, world_to_body_xy
+from deckland_common.lens import PIXY_K1, PIXY_K2, distort, undistort
 import pytest
 
 FX = 160.0 / math.tan(math.radians(30.0))
@@ -21,12 +22,14 @@ FY = 100.0 / math.tan(math.radians(23.5))
 
 
 def project(rel_world, roll, pitch, yaw):
-    """Independent forward model (default mount): world offset → pixel, None if outside."""
+    """Independent forward model (default mount, the Pixy lens the estimator is configured
+    with by default): world offset → pixel, None if outside."""
     b = mat_t_vec(rot_body_to_world(roll, pitch, yaw), rel_world)
     ox, oy, oz = -b[1], -b[0], -b[2]
     if oz <= 0.0:
         return None
-    px, py = 160.0 + FX * ox / oz, 100.0 + FY * oy / oz
+    xd, yd = distort(ox / oz, oy / oz, PIXY_K1, PIXY_K2, 0.0, 0.0)
+    px, py = 160.0 + FX * xd, 100.0 + FY * yd
     return (px, py) if 0.0 <= px <= 319.0 and 0.0 <= py <= 199.0 else None
 
 
@@ -153,7 +156,9 @@ def test_needs_attitude_and_height_before_using_a_frame():
     est.on_camera(0.04, [PixyBlock(1, 200, 100, 5, 5)])
     s = est.state(0.04)
     assert s.visible and not s.tracked
-    assert s.rel_position_m == pytest.approx((0.0, -2.0 * 40.0 / FX))
+    # 40 px right of the centre through the Pixy lens: the undistorted ray, at 2 m
+    assert s.rel_position_m == pytest.approx(
+        (0.0, -2.0 * undistort(40.0 / FX, 0.0, PIXY_K1, PIXY_K2, 0.0, 0.0)[0]))
 
 
 def test_signature_filter():
@@ -302,3 +307,67 @@ def test_decode_apron_array_accepts_the_layout_and_names_each_rejection():
     assert decode_apron_array('other_v9', good)[1] == 'bad_layout'
     assert decode_apron_array(None, good[:-3])[1] == 'bad_size'
     assert decode_apron_array(None, [float('nan')] * len(good))[1] == 'non_finite'
+
+
+def fly_beside_the_deck(deck_m, duration_s=12.0):
+    """Level flight at 2 m over a deck (x <= 0.3 m, top ``deck_m(t)``) and the ground beside
+    it, the beacon at the origin on the deck; x(t) goes over the beacon, beside the deck and
+    back. Returns [(t, estimated offset, true offset, lidar over the deck)]."""
+    est = ApronEstimator()
+    out = []
+    dt = 0.01
+
+    def x_of(t):   # −0.3 → +0.55 → −0.1 (m)
+        return -0.3 + 0.85 * t / 5.0 if t <= 5.0 else 0.55 - 0.65 * (t - 5.0) / 7.0
+
+    for k in range(int(duration_s / dt) + 1):
+        t = k * dt
+        x = x_of(t)
+        vx = (x_of(t + 1e-3) - x) / 1e-3
+        deck = deck_m(t)
+        est.on_attitude(t, 0.0, 0.0, 0.0)
+        est.on_accel(t, (0.0, 0.0, 0.0))
+        over = x <= 0.3
+        if k % 2 == 0:
+            est.on_lidar(t, 2.0 - (deck if over else 0.0))
+        if k % 10 == 0:
+            est.on_local_position(t, (x, 0.0, 2.0), (vx, 0.0, 0.0))
+        if k % 2 == 1:
+            truth = (-x, 0.0)
+            pix = project((truth[0], 0.0, deck - 2.0), 0.0, 0.0, 0.0)
+            est.on_camera(t, [] if pix is None else [PixyBlock(1, pix[0], pix[1], 6, 6)])
+            s = est.state(t)
+            if s.tracked:
+                out.append((t, s.rel_position_m, truth, over))
+    return out
+
+
+def test_from_beside_the_deck_the_offset_is_scaled_by_the_height_above_the_beacon():
+    """Decision 12d: over the ground beside a 0.6 m deck the lidar height is 2.0 m, the
+    beacon's 1.4 m; the offsets (29)-(30) scale with the latter. Before, they were 2.0 / 1.4
+    too long (a gain of 1.43 in the alignment loop, with the lens 1.6: ALIGN oscillated off
+    the beacon, paper seed 100000)."""
+    samples = fly_beside_the_deck(lambda t: 0.6)
+    # (the turn at 5 s is a velocity step with no acceleration fed: a KF transient, skipped)
+    beside = [(e, tr) for t, e, tr, over in samples if not over and not 4.9 < t < 5.5]
+    assert len(beside) > 20
+    for e, tr in beside:
+        assert e[0] == pytest.approx(tr[0], abs=0.01)
+        assert abs(tr[0] * 2.0 / 1.4 - tr[0]) > 0.04 + abs(e[0] - tr[0])
+    back = [(e, tr) for t, e, tr, over in samples if over and t > 8.0]
+    assert back and all(e[0] == pytest.approx(tr[0], abs=0.01) for e, tr in back)
+
+
+def test_a_deck_level_drifted_by_the_heave_is_re_anchored_over_the_beacon():
+    """The levels drift by the heave between re-bases: the deck seen 0.2 m lower on the way
+    back reads as level −0.2, not 0. Over the beacon (the lidar spot on it) the deck's level
+    is taken again, so the offsets there are scaled by the lidar height itself."""
+    samples = fly_beside_the_deck(lambda t: 0.6 if t < 5.0 else 0.4)
+    beside = [(e, tr) for t, e, tr, over in samples if not over and t > 5.5]
+    # beside, the level of the deck it left (0.6 m) still scales: 1.4 / 1.6 short
+    assert beside and all(e[0] == pytest.approx(tr[0] * 1.4 / 1.6, abs=0.01)
+                          for e, tr in beside)
+    near = [(e, tr) for t, e, tr, over in samples if over and t > 8.6]
+    assert near
+    for e, tr in near:
+        assert e[0] == pytest.approx(tr[0], abs=0.01)

@@ -420,12 +420,13 @@ def test_diagnostics_carry_counters_and_ages(make):
 
 
 def test_parameters_reach_the_core(make):
-    """A different FOV changes the geometry: 90° full FOV → f_x = 160 px."""
+    """A different FOV changes the geometry: 90° full FOV → f_x = 160 px (a pinhole lens)."""
     node, helper = make({'camera.fov_x_deg': 90.0, 'horizontal.acquire_hits': 2,
-                         'vertical.surface_model': 'velocity'}, pixel=(200.0, 100.0))
+                         'vertical.surface_model': 'velocity', 'camera.k1': 0.0,
+                         'camera.k2': 0.0}, pixel=(200.0, 100.0))
     p = node.estimator.params
-    assert (p.camera.fov_x_deg, p.horizontal.acquire_hits, p.vertical.surface_model) == (
-        90.0, 2, 'velocity')
+    assert (p.camera.fov_x_deg, p.horizontal.acquire_hits, p.vertical.surface_model,
+            p.camera.k1, p.camera.k2) == (90.0, 2, 'velocity', 0.0, 0.0)
     assert wait_tracked(helper)
     time.sleep(0.2)
     assert latest_state(helper).rel_position_m == pytest.approx((0.0, -2.0 * 40.0 / 160.0),

@@ -10,11 +10,13 @@ from deckland.graph.vizscene import SceneState, build_scene
 from deckland_common.frames import euler_to_quaternion
 import pytest
 
+PINHOLE = CameraParams(k1=0.0, k2=0.0)   # the geometry tests: the 60°x47° pinhole
+
 
 def test_level_camera_footprint_is_the_fov_rectangle_on_the_deck():
     """Straight down from 2 m above a deck at 0.5 m: half-widths h tan(30°) and h tan(23.5°),
     the 60°x47° field of view (the image's long side across the vehicle: FLU y)."""
-    fp = vizscene.camera_footprint((1.0, 2.0, 2.5), (1.0, 0.0, 0.0, 0.0), 0.5)
+    fp = vizscene.camera_footprint((1.0, 2.0, 2.5), (1.0, 0.0, 0.0, 0.0), 0.5, PINHOLE)
     xs = sorted(p[0] - 1.0 for p in fp)
     ys = sorted(p[1] - 2.0 for p in fp)
     assert all(p[2] == 0.5 for p in fp)
@@ -25,14 +27,24 @@ def test_level_camera_footprint_is_the_fov_rectangle_on_the_deck():
 
 def test_yaw_rotates_and_pitch_shifts_the_footprint():
     q = euler_to_quaternion(0.0, 0.0, math.pi / 2)
-    fp = vizscene.camera_footprint((0.0, 0.0, 2.0), q, 0.0)
+    fp = vizscene.camera_footprint((0.0, 0.0, 2.0), q, 0.0, PINHOLE)
     # nose north: the forward half-width (tan 23.5°) now lies along y
     assert max(p[1] for p in fp) == pytest.approx(2.0 * math.tan(math.radians(23.5)))
     nose_down = euler_to_quaternion(0.0, math.radians(10.0), 0.0)
-    fp = vizscene.camera_footprint((0.0, 0.0, 2.0), nose_down, 0.0)
+    fp = vizscene.camera_footprint((0.0, 0.0, 2.0), nose_down, 0.0, PINHOLE)
     # pitched 10° nose down, the camera looks back: the far edge is h tan(23.5° + 10°) behind
     assert min(p[0] for p in fp) == pytest.approx(-2.0 * math.tan(math.radians(33.5)))
     assert max(p[0] for p in fp) == pytest.approx(2.0 * math.tan(math.radians(13.5)))
+
+
+def test_the_pixy_lens_widens_the_footprint_beyond_the_pinhole_fov():
+    """The default camera is the estimator's, with the Pixy's barrel (decision 14): the
+    image corners see farther out than the pinhole 60°x47°."""
+    level = (1.0, 0.0, 0.0, 0.0)
+    pin = vizscene.camera_footprint((0.0, 0.0, 2.0), level, 0.0, PINHOLE)
+    lens = vizscene.camera_footprint((0.0, 0.0, 2.0), level, 0.0)
+    for a, b in zip(pin, lens, strict=True):
+        assert math.hypot(b[0], b[1]) > 1.1 * math.hypot(a[0], a[1])
 
 
 def test_no_footprint_below_the_deck_or_looking_at_the_horizon():

@@ -132,3 +132,34 @@ def test_an_ambiguity_in_descend_pauses_and_re_aligns():
     veh = VehicleState(t, (0.0, 0.0, 2.0), (0.0, 0.0, 0.0), 0.0, 0.0, 0.0)
     pl.step(t, 0.01, veh, _apron(t, 0.5))
     assert pl.mode is Mode.ALIGN and 'ambiguous' in pl.reason
+
+
+def _glint_first(top_m):
+    """The vehicle hovers over a glint on the ground (GLINT from the beacon); the beacon on
+    the 0.6 m deck shows for 1 s, then leaves the view for 3 s; ``top_m`` is the deck's level
+    the estimator passes (decision 12d), None as before."""
+    rng = random.Random(4)
+    tr = HorizontalTracker(HorizontalParams())
+    t = 0.0
+    vx, vy = GLINT
+    for _ in range(round(5.0 / DT)):
+        t += DT
+        cands = [(GLINT[0] - vx + rng.gauss(0, 0.01), GLINT[1] - vy + rng.gauss(0, 0.01))]
+        if 0.4 <= t < 1.4:
+            cands.append((-vx + rng.gauss(0, 0.01), -vy + rng.gauss(0, 0.01)))
+        tr.on_accel(t, 0.0, 0.0)
+        tr.update(t, cands, 1.5, _deck_surface(vx, vy), (0.0, 0.0), top_m)
+    return tr, t, (vx, vy)
+
+
+def test_a_track_verified_on_the_ground_below_the_deck_stays_ambiguous():
+    """fault_false_blobs seed 100003 (pid): the track on a ground glint was verified (the
+    ground under it) while the beacon, out of view, timed out; the glint was then the only,
+    unambiguous hypothesis and was descended on (edge strike). With the deck's level known
+    (decision 12d) a track sampled more than deck_rise_m below it keeps its rivals: the
+    target stays ambiguous (the planner does not descend) and the rival is probed."""
+    tr, t, _ = _glint_first(None)
+    x, y, *_ = tr.state(t)
+    assert math.hypot(x, y) < 0.05 and not tr.rivals and not tr.ambiguous   # on the glint
+    tr, t, _ = _glint_first(0.6)
+    assert tr.ambiguous and tr.events['probes'] >= 1 and tr.rivals

@@ -2,7 +2,8 @@
 
 Paper (29)-(30) with α = half of a configurable *full* FOV (Table 2 lists the Pixy's full
 60°/47°), i.e. the pinhole model of a level camera (``paper_exact=True``). The default
-generalises it: the pixel's ray is rotated by the camera mount and the vehicle attitude into
+generalises it: the pixel is undistorted (Brown–Conrady, :mod:`deckland_common.lens`; the
+Pixy lens by default), its ray is rotated by the camera mount and the vehicle attitude into
 ENU and intersected with the deck plane ``height_above_deck_m`` below the body origin (no
 tilt error: ≈ 0.27 m at 10° and 1.5 m with (29)-(30)). (35) is ``rel_ENU = Rz(ψ) rel_FLU``.
 Frames: :mod:`deckland_common.frames`; default mount: optical x = body −y, y = −x, z = −z.
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 import math
 
 from deckland_common.frames import body_to_world_xy, mat_vec, rot_body_to_world
+from deckland_common.lens import PIXY_K1, PIXY_K2, undistort
 
 from deckland_common import validate as chk
 
@@ -39,6 +41,10 @@ class CameraParams:
     mount_pitch_rad: float = 0.0  # vehicle attitude (a mount pitch p looks exactly like a
     mount_yaw_rad: float = 0.0    # vehicle pitch p with a default mount)
     min_ray_down_cos: float = 0.1  # rays flatter than acos(this) from straight down: no fix
+    k1: float = PIXY_K1           # lens distortion (Brown–Conrady, normalised coordinates):
+    k2: float = PIXY_K2           # radial k1, k2 (the Pixy lens), tangential p1, p2;
+    p1: float = 0.0               # all zero: the pinhole of (29)-(30)
+    p2: float = 0.0
     paper_exact: bool = False     # (29)-(30) with z as given, no tilt, yaw-only rotation (35)
 
     def __post_init__(self) -> None:
@@ -54,6 +60,10 @@ class CameraParams:
         for name in ('mount_roll_rad', 'mount_pitch_rad', 'mount_yaw_rad'):
             chk.in_range(f'{o}.{name}', getattr(self, name), -math.pi, math.pi)
         chk.in_range(f'{o}.min_ray_down_cos', self.min_ray_down_cos, 0.0, 0.99)
+        for name in ('k1', 'k2'):
+            chk.in_range(f'{o}.{name}', getattr(self, name), -2.0, 2.0)
+        for name in ('p1', 'p2'):
+            chk.in_range(f'{o}.{name}', getattr(self, name), -0.1, 0.1)
         if not isinstance(self.paper_exact, bool):
             raise ValueError(f'{o}.paper_exact must be a bool, got {self.paper_exact!r}')
 
@@ -77,6 +87,7 @@ class CameraModel:
         '_default_mount',
         '_inv_fx',
         '_inv_fy',
+        '_lens',
         '_m',
         '_min_cos',
         '_off',
@@ -99,14 +110,20 @@ class CameraModel:
             p.mount_yaw_rad == 0.0)
         self._off = (float(p.mount_x_m), float(p.mount_y_m), float(p.mount_z_m))
         self._min_cos = float(p.min_ray_down_cos)
+        lens = (float(p.k1), float(p.k2), float(p.p1), float(p.p2))
+        self._lens = lens if any(c != 0.0 for c in lens) else None
         # (29)-(30): tan α / x_max with α the half FOV (= 1 / f)
         self._paper_kx = math.tan(math.radians(p.fov_x_deg) / 2.0) / (0.5 * p.width_px)
         self._paper_ky = math.tan(math.radians(p.fov_y_deg) / 2.0) / (0.5 * p.height_px)
 
     def ray_body(self, px: float, py: float) -> tuple[float, float, float]:
-        """Un-normalised ray of pixel (px, py) in body FLU axes (optical ray (u, v, 1))."""
+        """Un-normalised ray of pixel (px, py) in body FLU axes (optical ray (u, v, 1),
+        undistorted)."""
         u = (px - self._cx) * self._inv_fx
         v = (py - self._cy) * self._inv_fy
+        lens = self._lens
+        if lens is not None:
+            u, v = undistort(u, v, lens[0], lens[1], lens[2], lens[3])
         if self._default_mount:
             return -v, -u, -1.0
         m = self._m

@@ -28,6 +28,11 @@ from deckland_common import validate as chk
 _isfinite = math.isfinite
 
 
+#: Decision 12d: below this camera height above the beacon's surface the level correction
+#: is not applied (the lidar height is used, as the paper does)
+_MIN_CAMERA_HEIGHT_M = 0.3
+
+
 @dataclass(frozen=True)
 class EstimatorParams:
     """All estimator parameters; sub-dataclasses validate themselves."""
@@ -72,6 +77,9 @@ class ApronEstimator:
         self._pos = None
         self._t_camera = -math.inf
         self._lidar_spot = (0.0, 0.0)
+        self._delta_m = 0.0     # the camera height's level correction used last (_camera_delta)
+        self._top_level_m = 0.0   # the deck's surface level (_camera_delta)
+        self._low_level_m = 0.0   # the lowest surface level seen
 
     @property
     def rejected(self) -> dict[str, int]:
@@ -170,12 +178,19 @@ class ApronEstimator:
             cy, sy = math.cos(att[2]), math.sin(att[2])
             self._lidar_spot = (-r * (cy * sp * cr + sy * sr), -r * (sy * sp * cr - cy * sr))
         if vf.surface_epoch != epoch:
-            # The camera offsets scale with the height (29)-(30): a re-base from h_before to
-            # h_after rescales every offset measured from now on by h_after / h_before.
+            # The camera offsets scale with the camera height (29)-(30): a re-base changes it
+            # from c_before to c_after and every offset measured from now on by their ratio.
+            # c = h − δ: with the beacon's surface level known, δ moves with the level and
+            # c does not change (ratio 1); unknown (δ = 0), h_after / h_before (12b)
             h_after = vf.x[0] - vf.x[2]
             h_before = h_after + vf.last_rebase_m
-            if h_after > 0.05 and h_before > 0.05:
-                self.horizontal.rescale(h_after / h_before)
+            self._top_level_m = max(self._top_level_m, vf.surface_level_m)
+            self._low_level_m = min(self._low_level_m, vf.surface_level_m)
+            d_after = self._camera_delta(h_after)
+            c_after, c_before = h_after - d_after, h_before - self._delta_m
+            if c_after > 0.05 and c_before > 0.05:
+                self.horizontal.rescale(c_after / c_before)
+            self._delta_m = d_after
 
     def on_camera(self, t_s: float, blocks: Sequence[PixyBlock]) -> None:
         """One Pixy frame; ``t_s`` is its exposure stamp (may be in the past)."""
@@ -193,6 +208,14 @@ class ApronEstimator:
         if height is None:
             self._own['no_height'] += 1
             return
+        if not self.params.camera.paper_exact:
+            # the height above the *beacon's* surface (README, decision 12d)
+            delta = self._camera_delta(height)
+            if delta != self._delta_m and height - self._delta_m > 0.05:
+                # the basis changed (the track's level learnt or switched): rescale
+                self.horizontal.rescale((height - delta) / (height - self._delta_m))
+            self._delta_m = delta
+            height -= delta
         self._t_camera = t_s
         sig = self.params.beacon_signature
         scored = []
@@ -228,7 +251,32 @@ class ApronEstimator:
         surface = None
         if vf.initialised and self._recent_lidar(t_s):
             surface = vf.surface_level_m
-        self.horizontal.update(t_s, candidates, height, surface, self._lidar_spot)
+        hz = self.horizontal
+        top = None if self.params.camera.paper_exact else self._top_level_m
+        if hz.update(t_s, candidates, height, surface, self._lidar_spot, top) and (
+                surface is not None and hz.mode == 'tracking'):
+            # the lidar spot on the tracked beacon: the surface under it is the beacon's
+            x, y = hz.kf.px, hz.kf.py
+            sx, sy = self._lidar_spot
+            r = hz.params.verify_radius_m
+            if ((x - sx) * (x - sx) + (y - sy) * (y - sy) <= r * r
+                    and surface - self._low_level_m > self._top_level_m - surface):
+                self._top_level_m = surface
+
+    def _camera_delta(self, height_m: float) -> float:
+        """δ = level of the beacon's surface − level of the surface under the vehicle (the
+        vertical filter's re-base steps, decision 13): the camera height above the beacon
+        is h − δ. The beacon's level: the highest surface seen (a beacon sits on the deck),
+        moved to the level seen with the lidar spot on the tracked beacon when that is
+        nearer the highest than the lowest (the levels drift with a heave between re-bases;
+        a glint on the ground does not move it). 0 (the lidar height) when h − δ would be
+        below ``_MIN_CAMERA_HEIGHT_M``: beside the deck at its own height there is no
+        usable geometry, over the deck a drifted level must not shrink the final approach's
+        offsets (README, decision 12d)."""
+        if self.params.camera.paper_exact:
+            return 0.0
+        d = self._top_level_m - self.vertical.surface_level_m
+        return d if height_m - d >= _MIN_CAMERA_HEIGHT_M else 0.0
 
     def _height_at(self, t_s: float) -> float | None:
         vf = self.vertical

@@ -434,7 +434,8 @@ class HorizontalTracker:
 
     def update(self, t_s: float, candidates: list[tuple[float, float]],
                height_m: float, surface_m: float | None = None,
-               spot_m: tuple[float, float] = (0.0, 0.0)) -> bool:
+               spot_m: tuple[float, float] = (0.0, 0.0),
+               top_m: float | None = None) -> bool:
         """One camera frame: candidate beacon offsets (ENU, m), best first; True if accepted.
 
         ``t_s`` is the exposure stamp; frames must be strictly in order (else rejected and
@@ -445,6 +446,8 @@ class HorizontalTracker:
         ``VerticalFilter.surface_level_m`` (the surface steps, without the heave).
         ``spot_m`` is where that surface was seen, horizontally from the vehicle (ENU): the
         lidar spot, displaced by the tilt; a hypothesis is sampled while the spot is near it.
+        ``top_m`` is the deck's level (the highest surface, the estimator's decision 12d): a
+        track sampled more than ``deck_rise_m`` below it is on the ground, not the beacon.
         """
         if not (math.isfinite(t_s) and math.isfinite(height_m)):
             self.rejected['nan'] += 1
@@ -502,7 +505,7 @@ class HorizontalTracker:
             self.noise.update(0.5 * (nx * nx + ny * ny), 0.5 * (kf.ax + kf.ay), r0)
         kf.update(best[0], best[1], r)
         if self.mode == 'tracking' and (len(good) > 1 or self.rivals):
-            self._rivals(t_s, good, best_i, surface_m, spot_m)
+            self._rivals(t_s, good, best_i, surface_m, spot_m, top_m)
         self.last_nis = best_nis
         self.t_last_accept = t_s
         self.visible = True
@@ -543,7 +546,8 @@ class HorizontalTracker:
 
     def _rivals(self, t_s: float, good: list[tuple[float, float]],
                 best_i: int, surface_m: float | None,
-                spot_m: tuple[float, float] = (0.0, 0.0)) -> None:
+                spot_m: tuple[float, float] = (0.0, 0.0),
+                top_m: float | None = None) -> None:
         """Associate the unexplained detections with rivals, sample the surface under the
         track and the rivals, resolve or probe; refresh the ambiguity spread.
 
@@ -591,7 +595,13 @@ class HorizontalTracker:
         # leaving the image while the vehicle hovers over a glint made the glint the only,
         # unambiguous hypothesis and the planner descended on it (seeds 100052, 300054: edge
         # strikes). Once the track is verified, the usual timeouts apply.
-        unverified = self.surface is None
+        # a track verified on a surface well below the deck's (a glint on the ground beside
+        # it) counts as unverified: its rivals are kept (fault_false_blobs seed 100003, pid:
+        # the beacon out of view while the vehicle hovered over a ground glint timed out,
+        # the glint was descended on: an edge strike)
+        low = (self.surface is not None and top_m is not None
+               and self.surface < top_m - p.deck_rise_m)
+        unverified = self.surface is None or low
         confirm = p.rival_confirm_hits
         rivals[:] = [rv for rv in rivals
                      if (unverified and not rv.rejected
@@ -617,7 +627,15 @@ class HorizontalTracker:
         sep2 = p.ambiguity_min_sep_m * p.ambiguity_min_sep_m
         open_ = [rv for rv in rivals if not rv.rejected and rv.hits >= p.rival_confirm_hits
                  and rv.dx * rv.dx + rv.dy * rv.dy > sep2]
+        track_surface = self.surface
         for rv in open_:
+            if low and track_surface is not None and (
+                    rv.surface is None or rv.surface > track_surface + p.deck_rise_m):
+                # the track is on the ground: the beacon is more likely this rival
+                self._switch(rv, reject_old=True)
+                self.events['switches'] += 1
+                self.events['rivals_rejected'] += 1
+                break
             if rv.surface is None or self.surface is None:
                 continue
             if rv.surface > self.surface + p.deck_rise_m:

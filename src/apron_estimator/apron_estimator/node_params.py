@@ -40,6 +40,11 @@ ESTIMATOR_DESCRIPTIONS = {
     'camera.mount_pitch_rad': 'extra camera rotation vs the default mount, pitch',
     'camera.mount_yaw_rad': 'extra camera rotation vs the default mount, yaw',
     'camera.min_ray_down_cos': 'rays flatter than acos(this) from straight down give no fix',
+    'camera.k1': 'lens distortion, radial k1 (Brown–Conrady on normalised coordinates; '
+                 'default the Pixy lens, AP_IRLock characterisation)',
+    'camera.k2': 'lens distortion, radial k2',
+    'camera.p1': 'lens distortion, tangential p1',
+    'camera.p2': 'lens distortion, tangential p2 (k1 = k2 = p1 = p2 = 0: the pinhole)',
     'camera.paper_exact': 'use (29)-(30) with the raw lidar range, no tilt compensation, '
                           'yaw-only (35)',
     'horizontal.accel_psd_m2ps3': 'q of the relative-position KF: Q = diag(0, q dt) per axis '

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import random
 
 from deckland_common.frames import Mat3, Vec3, rot_body_to_world
+from deckland_common.lens import PIXY_K1, PIXY_K2, distort, undistort
 
 from deck_simulator.sensor_imu import euler_from_matrix
 from deck_simulator.sensor_models import ModelStreams, TimingParams, mat_mul
@@ -31,8 +32,8 @@ def _timing() -> TimingParams:
 class CameraModelParams:
     """Lens class, per-unit spread, calibration mismatch and exposure timing of the Pixy."""
 
-    k1: float = -0.491                  # fitted to ArduPilot AP_IRLock's lens characterisation
-    k2: float = 0.306
+    k1: float = PIXY_K1                 # fitted to ArduPilot AP_IRLock's lens characterisation
+    k2: float = PIXY_K2
     p1: float = 0.0
     p2: float = 0.0
     k_rel_std: float = 0.05             # per unit, relative σ of k1 and k2
@@ -107,21 +108,11 @@ class TrueCamera:
 
     def distort(self, x: float, y: float) -> tuple[float, float]:
         """Normalised undistorted (x, y) → distorted (Brown–Conrady)."""
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
-        return (x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
-                y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y)
+        return distort(x, y, self.k1, self.k2, self.p1, self.p2)
 
     def undistort(self, xd: float, yd: float) -> tuple[float, float]:
         """Inverse of :meth:`distort` by fixed-point iteration (the OpenCV scheme)."""
-        x, y = xd, yd
-        for _ in range(self.iterations):
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
-            dx = 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-            dy = self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
-            x, y = (xd - dx) / radial, (yd - dy) / radial
-        return x, y
+        return undistort(xd, yd, self.k1, self.k2, self.p1, self.p2, self.iterations)
 
     def optical(self, r_body_to_world: Mat3, d0: float, d1: float, d2: float) -> Vec3:
         """Optical-frame coordinates of the world vector d (camera → point)."""

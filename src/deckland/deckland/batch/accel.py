@@ -29,6 +29,7 @@ COMPILED_MODULES = (
     'deckland_common.checks',
     'deckland_common.contract',
     'deckland_common.frames',
+    'deckland_common.lens',
     'deck_simulator.autopilot',
     'deck_simulator.contact',
     'deck_simulator.deck',

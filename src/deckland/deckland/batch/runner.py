@@ -114,13 +114,15 @@ def make_altitude_controller(config: RunConfig, vehicle: VehicleDescription | No
 def nominal_camera(scenario: Scenario) -> CameraParams:
     """The estimator's camera: the scenario's nominal ``sensors.camera`` (what an operator
     calibrated), not the per-seed true camera the world renders through."""
-    c = scenario.sensors.camera
+    c, lens = scenario.sensors.camera, scenario.sensors.true_camera
     (mx, my, mz), (mr, mp, myaw) = c.mount_offset_m, c.mount_rpy_rad
     return CameraParams(fov_x_deg=c.fov_x_deg, fov_y_deg=c.fov_y_deg,
                         width_px=float(c.width_px), height_px=float(c.height_px),
                         cx_px=c.principal_point_px[0], cy_px=c.principal_point_px[1],
                         mount_x_m=mx, mount_y_m=my, mount_z_m=mz, mount_roll_rad=mr,
-                        mount_pitch_rad=mp, mount_yaw_rad=myaw)
+                        mount_pitch_rad=mp, mount_yaw_rad=myaw,
+                        # the lens's published characterisation (each unit deviates from it)
+                        k1=lens.k1, k2=lens.k2, p1=lens.p1, p2=lens.p2)
 
 
 def planner_params_for(scenario: Scenario, config: RunConfig) -> PlannerParams:
