@@ -476,3 +476,51 @@ def test_a_deck_that_breaks_the_prediction_sends_the_vehicle_around_a_bounded_nu
     k = [i for i, r in enumerate(sim.reasons) if 'go around' in r]
     assert all('Step 9' in sim.reasons[i + 2] for i in k)
     assert min(sim.fa_heights) >= p.final_approach_height_m - 0.06
+
+
+def blind_final(deck_v, lose_at_h, params=None):
+    """Committed FINAL (no timing) over a flat deck moving at ``deck_v``; the beacon is lost
+    once the height is below ``lose_at_h`` and no telemetry follows (the estimator's source
+    then: none). The vehicle follows the setpoint and the height reference ideally.
+    Returns (planner, the reasons after the loss, the height at the loss)."""
+    p = LandingPlanner(params or PlannerParams(timed_touchdown=False))
+    p.start_landing(0.0)
+    xy, h, t = (0.0, 0.0), 2.0, 0.0
+    lost_h = None
+    reasons = []
+    while t < 60.0 and p.mode is not Mode.LANDED:
+        deck = (deck_v[0] * t, deck_v[1] * t)
+        if lost_h is None and p.mode is Mode.FINAL and h < lose_at_h:
+            lost_h = h
+        seen = lost_h is None
+        a = make_apron(t, xy, deck if seen else None, make_vertical(h), beacon_v=deck_v)
+        if seen:
+            a = dataclasses.replace(a, source=DECK_SOURCE_BEACON)
+        v = (deck_v[0], deck_v[1], 0.0)
+        reason = p.reason
+        out = p.step(t, DT, make_vehicle(t, xy, h, v=v), a)
+        if lost_h is not None and p.reason != reason:
+            reasons.append(p.reason)
+            if 'go around' in p.reason:
+                break
+        xy, h = out.setpoint_m, max(out.z_d_m, p.params.gear_height_m)
+        t = round(t + DT, 9)
+    return p, reasons, lost_h
+
+
+def test_a_blind_committed_descent_over_a_moving_deck_goes_around():
+    """fault_telemetry_loss seed 100002: the beacon left the view at 0.23 m over a deck at
+    2.5 m/s, no telemetry; the constant-velocity prediction was 0.5 m/s off and the first
+    contact 2 m beside the pad (edge strike). Only a prediction left → go around."""
+    p, reasons, lost_h = blind_final((1.0, 0.0), 0.3)
+    assert lost_h is not None and p.mode is Mode.ALIGN and p.go_arounds == 1
+    assert 'go around 1 of' in reasons[-1] and 'only a prediction' in reasons[-1]
+
+
+@pytest.mark.parametrize('deck_v, lose_at_h', [((0.0, 0.0), 0.3), ((1.0, 0.0), 0.19)])
+def test_a_blind_descent_goes_on_over_a_deck_at_rest_or_in_the_landed_band(deck_v, lose_at_h):
+    """A deck at rest: the prediction is exact (PX4 PLD_FAPPR_ALT, the paper's decks); in the
+    landed band (h ≤ gear + 5 cm) the contact is closer than any climb."""
+    p, reasons, lost_h = blind_final(deck_v, lose_at_h)
+    assert lost_h is not None and p.go_arounds == 0
+    assert p.mode is Mode.LANDED, reasons

@@ -73,7 +73,8 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'commit_follow_lag_s': 'commit window: lag (s) of the vehicle following the deck',
     'commit_leash_m': 'final_leash_m (m) of a descent committed into a window',
     'commit_plan_speed_mps': 'commit window: closing speed (m/s) the final descent achieves',
-    'max_go_arounds': 'go-arounds (deck broke the prediction) per landing, at most',
+    'max_go_arounds': 'go-arounds (deck broke the prediction, or blind over a moving deck with '
+                      'only a prediction) per landing, at most',
     'predictor_warmup_updates': 'deck predictor: model updates before its paths are scored',
     'predictor_min_calibration': 'deck predictor: scored paths before it is ready',
 }

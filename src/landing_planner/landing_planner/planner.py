@@ -727,6 +727,29 @@ class LandingPlanner:
                             f'{p.max_go_arounds} (climb over the pad, keep tracking, retry)',
                             go_around=True)
 
+    def _blind_go_around(self, tk: _Tick) -> bool:
+        """Committed, the beacon lost over a moving deck and no telemetry: the pad's place
+        is only a constant-velocity prediction, wrong by the deck's unmodelled acceleration
+        and the last estimate's velocity error (`fault_telemetry_loss` seed 100002: 0.5 m/s,
+        first contact 2 m off the pad, an edge strike). Above the landed band go around
+        (climb over the predicted pad, look again), at most ``max_go_arounds`` times; a
+        deck at rest, telemetry, or the landed band: go on blind (PX4 PLD_FAPPR_ALT)."""
+        p = self.params
+        o = self._tp
+        h = self._height
+        if (o.source != DECK_SOURCE_PREDICTION or tk.lost_for < p.timer_debounce_s
+                or not (o.moving or self._track.max_speed_mps > _MOVING_MPS)
+                or self.go_arounds >= p.max_go_arounds or h is None
+                or h - p.gear_height_m <= p.landed_height_tol_m):
+            return False
+        self._monitor.disarm()
+        self.go_arounds += 1
+        self._switch_to(Mode.ALIGN, tk.t_s, f'target lost for {tk.lost_for:.1f} s in the '
+                        'committed descent over a moving deck, only a prediction of it: go '
+                        f'around {self.go_arounds} of {p.max_go_arounds} (climb over the '
+                        'predicted pad, look again)', go_around=True)
+        return True
+
     def _check_landed(self, tk: _Tick) -> None:
         """FINAL, FALLBACK: Step 15 → Step 16."""
         if self._landed(tk.t_s, tk.vert_ok, tk.closing, tk.vehicle, tk.veh_ok):
@@ -1142,7 +1165,8 @@ class _Final(_State):
         if pl.mode is not Mode.FINAL:
             return
         if pl._l.committed:
-            pl._watch_commit(tk)
+            if not pl._blind_go_around(tk):
+                pl._watch_commit(tk)
         elif tk.lost_for > _HOLD_LOST_FACTOR * pl.params.target_lost_timeout_s:
             # the hold waits for a window and may wait seconds: blind, the estimate drifts
             # with the wind until the vehicle leaves the pad (gusty seed 100020: 4 s blind at
