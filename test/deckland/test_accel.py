@@ -183,3 +183,41 @@ def test_cores_are_python_in_the_test_process():
     assert accel.enable('auto') == 'python'
     import apron_estimator.vertical as vertical
     assert vertical.__file__.endswith('.py')
+
+
+#: Core-package modules a compiled run may still load as Python, and why (each runs once
+#: per run, not per tick).
+KEPT_PYTHON = {
+    'deck_simulator.scenario': 'scenario loading and validation',
+    'deck_simulator.ship_params': 'the ship parameter dataclasses, read at construction',
+    'deck_simulator.faults': 'fault injection: its frozen dataclass hierarchy does not '
+                             'compile; nothing of it runs in a fault-free tick',
+    'deck_simulator.outcome': 'the landing record, assembled once at the end',
+    'deckland_common.validate': 'parameter validation at construction',
+}
+
+_LOADED = r"""
+import json, sys
+from deckland.batch import accel
+accel.enable('compiled')
+from deck_simulator.scenario import load_scenario
+from deckland.batch.runner import RunConfig, run_landing
+for scenario in ('paper', 'ship_ss4', 'fault_telemetry_loss', 'fault_false_blobs'):
+    run_landing(load_scenario(scenario), 100001, RunConfig())
+packages = set(accel.PACKAGES)
+print(json.dumps(sorted(n for n, m in sys.modules.items() if '.' in n
+                        and n.split('.')[0] in packages
+                        and str(getattr(m, '__file__', '') or '').endswith('.py'))))
+"""
+
+
+def test_every_module_a_run_steps_is_compiled():
+    """issue 12's speed: three planner modules (deck_track, deck_predictor, commit_window)
+    and the ship link ran as Python for a tranche, unnoticed (paper 169 → 219x once
+    compiled). A module a run loads as Python must be listed here with its reason."""
+    _ready()
+    res = subprocess.run([sys.executable, '-c', _LOADED], env=_env(), capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    loaded = set(json.loads(res.stdout.strip().splitlines()[-1]))
+    assert loaded <= set(KEPT_PYTHON), sorted(loaded - set(KEPT_PYTHON))
