@@ -599,8 +599,7 @@ class LandingPlanner:
         if search.retry():
             self._switch_to(Mode.SEARCH, t_s, f'{why}: search attempt {search.attempts} '
                             f'of {search.max_attempts} (Steps 11-12)')
-        elif (self._tp.moving or self._track.max_speed_mps > _MOVING_MPS) \
-                and not self._over_deck():
+        elif self._deck_moving() and not self._over_deck():
             # Step 14 "land where it is" would land on the sea beside a moving deck
             self._switch_to(Mode.HOLD, t_s, f'{why}: {search.attempts} search attempts used '
                             'on a moving deck: holding over its predicted track at the '
@@ -715,17 +714,10 @@ class LandingPlanner:
             return
         if not broken:
             return
-        p = self.params
-        h = self._height
         mon_reason, worst = mon.reason, mon.worst_sigma
         mon.disarm()
-        if (self.go_arounds < p.max_go_arounds and h is not None
-                and h - p.gear_height_m > p.landed_height_tol_m):
-            self.go_arounds += 1
-            self._switch_to(Mode.ALIGN, tk.t_s, f'deck broke the prediction ({mon_reason}, '
-                            f'{worst:.1f} sigma): go around {self.go_arounds} of '
-                            f'{p.max_go_arounds} (climb over the pad, keep tracking, retry)',
-                            go_around=True)
+        self._go_around(tk.t_s, f'deck broke the prediction ({mon_reason}, {worst:.1f} sigma)',
+                        'climb over the pad, keep tracking, retry')
 
     def _blind_go_around(self, tk: _Tick) -> bool:
         """Committed, the beacon lost over a moving deck and no telemetry: the pad's place
@@ -734,21 +726,32 @@ class LandingPlanner:
         first contact 2 m off the pad, an edge strike). Above the landed band go around
         (climb over the predicted pad, look again), at most ``max_go_arounds`` times; a
         deck at rest, telemetry, or the landed band: go on blind (PX4 PLD_FAPPR_ALT)."""
-        p = self.params
-        o = self._tp
-        h = self._height
-        if (o.source != DECK_SOURCE_PREDICTION or tk.lost_for < p.timer_debounce_s
-                or not (o.moving or self._track.max_speed_mps > _MOVING_MPS)
-                or self.go_arounds >= p.max_go_arounds or h is None
-                or h - p.gear_height_m <= p.landed_height_tol_m):
+        if (self._tp.source != DECK_SOURCE_PREDICTION
+                or tk.lost_for < self.params.timer_debounce_s or not self._deck_moving()):
+            return False
+        if not self._go_around(tk.t_s, f'target lost for {tk.lost_for:.1f} s in the '
+                               'committed descent over a moving deck, only a prediction of it',
+                               'climb over the predicted pad, look again'):
             return False
         self._monitor.disarm()
-        self.go_arounds += 1
-        self._switch_to(Mode.ALIGN, tk.t_s, f'target lost for {tk.lost_for:.1f} s in the '
-                        'committed descent over a moving deck, only a prediction of it: go '
-                        f'around {self.go_arounds} of {p.max_go_arounds} (climb over the '
-                        'predicted pad, look again)', go_around=True)
         return True
+
+    def _go_around(self, t_s: float, why: str, how: str) -> bool:
+        """→ ALIGN as a go-around, unless ``max_go_arounds`` are used or the vehicle is in
+        the landed band (the contact is closer than any climb); True if it went around."""
+        p = self.params
+        h = self._height
+        if (self.go_arounds >= p.max_go_arounds or h is None
+                or h - p.gear_height_m <= p.landed_height_tol_m):
+            return False
+        self.go_arounds += 1
+        self._switch_to(Mode.ALIGN, t_s, f'{why}: go around {self.go_arounds} of '
+                        f'{p.max_go_arounds} ({how})', go_around=True)
+        return True
+
+    def _deck_moving(self) -> bool:
+        """The deck is predicted moving, or was once tracked faster than a drifting barge."""
+        return self._tp.moving or self._track.max_speed_mps > _MOVING_MPS
 
     def _check_landed(self, tk: _Tick) -> None:
         """FINAL, FALLBACK: Step 15 → Step 16."""
