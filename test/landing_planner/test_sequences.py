@@ -44,9 +44,10 @@ def test_beacon_never_seen_searches_then_falls_back_where_it_is():
     assert sim.planner.searches == PlannerParams().max_searches
     # every attempt restarted the SEARCH (searches counted 1, 2, 3 in the outputs)
     assert sorted({o.searches for o in sim.outputs if o.mode is Mode.SEARCH}) == [1, 2, 3]
-    # climbed to (and settled at) the search height while searching; crossing the deck edge
-    # re-bases the height, so z_d also takes 3.5 ± 0.6 transiently
-    assert any(abs(o.z_d_m - 3.5) < 1e-9 and o.z_d_dot_mps == 0.0
+    # never seen: climbed to (and settled at) the wide search height while searching;
+    # crossing the deck edge re-bases the height, so z_d also takes 8 ± 0.6 transiently
+    wide = PlannerParams().wide_search_height_m
+    assert any(abs(o.z_d_m - wide) < 1e-9 and o.z_d_dot_mps == 0.0
                for o in sim.outputs if o.mode is Mode.SEARCH)
     # fallback landed near where it was (inside the search square around the area)
     _t_c, _on_pad, rel_speed, err = sim.contact

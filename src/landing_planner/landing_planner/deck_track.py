@@ -37,12 +37,14 @@ class DeckTrackParams:
     displacement_velocity: bool = False   # predict with the displacement (see update)
     max_prediction_s: float = 60.0    # a prediction older than this is no track
     accel_horizon_s: float = 1.0      # the acceleration is used this long after a fix
+    speed_window_s: float = 3.0       # averaging time of the RMS speed (rms_speed_mps)
 
     def __post_init__(self) -> None:
         chk.positive('DeckTrackParams.velocity_filter_s', self.velocity_filter_s)
         chk.positive('DeckTrackParams.velocity_window_s', self.velocity_window_s)
         chk.positive('DeckTrackParams.max_prediction_s', self.max_prediction_s)
         chk.non_negative('DeckTrackParams.accel_horizon_s', self.accel_horizon_s)
+        chk.positive('DeckTrackParams.speed_window_s', self.speed_window_s)
 
 
 class TrackPoint:
@@ -76,8 +78,8 @@ def _ok(*values: float) -> bool:
 class DeckTrack:
     """The pad from the beacon, else telemetry, else a prediction, else the landing area."""
 
-    __slots__ = ('_acc', '_fix_s', '_heading', '_hist', '_pos', '_src', '_vel', '_yaw_rate',
-                 'area_m', 'fixes', 'max_speed_mps', 'params')
+    __slots__ = ('_acc', '_fix_s', '_heading', '_hist', '_ms', '_pos', '_src', '_vel',
+                 '_yaw_rate', 'area_m', 'fixes', 'max_speed_mps', 'params')
 
     def __init__(self, area_m: tuple[float, float],
                  params: DeckTrackParams | None = None) -> None:
@@ -97,6 +99,14 @@ class DeckTrack:
         self._fix_s = -math.inf
         self._src = DECK_SOURCE_NONE
         self._hist: list[tuple[float, float, float]] = []   # (t, x, y) of recent fixes
+        self._ms = 0.0               # mean square of the filtered velocity (speed_window_s)
+
+    @property
+    def rms_speed_mps(self) -> float:
+        """The deck's RMS horizontal speed over about ``speed_window_s`` of fixes: a
+        translating or swaying deck, not an estimator's acquisition transient (which
+        ``max_speed_mps`` keeps) nor the noise of a deck at rest."""
+        return math.sqrt(self._ms)
 
     @property
     def has_fix(self) -> bool:
@@ -125,6 +135,8 @@ class DeckTrack:
             k = dt / (self.params.velocity_filter_s + dt) if dt > 0.0 else 0.0
             vel = (self._vel[0] + k * (v[0] - self._vel[0]),
                    self._vel[1] + k * (v[1] - self._vel[1]))
+            km = dt / (self.params.speed_window_s + dt) if dt > 0.0 else 0.0
+            self._ms += km * (vel[0] * vel[0] + vel[1] * vel[1] - self._ms)
         else:
             vel = (float(v[0]), float(v[1]))
         pos = (float(p[0]), float(p[1]))

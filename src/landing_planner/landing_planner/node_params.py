@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import fields
 import math
 
-from deckland_common.params import ParameterError, ParamSpec, one_of, positive
+from deckland_common.params import ParameterError, ParamSpec, non_negative, one_of, positive
 
 from landing_planner.horizontal import HorizontalParams
 from landing_planner.planner import DESCENT_PROFILES, PlannerParams
@@ -73,6 +73,23 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'commit_follow_lag_s': 'commit window: lag (s) of the vehicle following the deck',
     'commit_leash_m': 'final_leash_m (m) of a descent committed into a window',
     'commit_plan_speed_mps': 'commit window: closing speed (m/s) the final descent achieves',
+    'moving_final_speed_mps': 'final_speed_mps on a moving deck (faster than a drifting '
+                              'barge): a firmer touchdown, less time for the deck to sway',
+    'moving_commit_plan_speed_mps': 'commit_plan_speed_mps on a moving deck',
+    'moving_landed_press_m': 'landed_press_m on a moving deck: LANDED (thrust off) sooner '
+                             'after contact, before the deck slides out from under the gear',
+    'moving_landed_hold_s': 'landed_hold_s on a moving deck',
+    'moving_landed_height_tol_m': 'landed_height_tol_m on a moving deck (tighter: a deck '
+                                  'receding under the vehicle also refuses the travel)',
+    'wide_search_height_m': 'search height (m) above the surface below while the deck has '
+                            'never been seen (it may have moved off the landing area)',
+    'wide_search_climb_mps': 'climb speed (m/s) to wide_search_height_m',
+    'wide_search_accel_mps2': 'acceleration limit (m/s^2) of the climb to '
+                              'wide_search_height_m',
+    'wide_search_yaw_rate_radps': 'yaw rate (rad/s) of the wide search: the wide axis of '
+                                  'the camera sweeps round',
+    'max_deck_speed_mps': 'in a wide search (deck never seen) the area gate grows this fast '
+                          '(m/s) from the landing start (0: a fixed gate)',
     'max_go_arounds': 'go-arounds (deck broke the prediction, or blind over a moving deck with '
                       'only a prediction) per landing, at most',
     'predictor_warmup_updates': 'deck predictor: model updates before its paths are scored',
@@ -136,6 +153,8 @@ def _planner_specs() -> list[ParamSpec]:
             specs.append(ParamSpec(f.name, bool(default), text))
         elif f.name == 'deck_yaw_offset_rad':
             specs.append(ParamSpec(f.name, float(default), text))
+        elif f.name == 'max_deck_speed_mps':
+            specs.append(non_negative(f.name, float(default), text))
         elif f.name == 'acceptance_hysteresis':
             specs.append(ParamSpec(f.name, float(default), text, lambda v: v >= 1.0,
                                    'must be >= 1'))

@@ -124,6 +124,24 @@ class PlannerParams:
     max_go_arounds: int = 2             # deck broke the prediction: at most this many
     predictor_warmup_updates: int = 20  # ChannelParams.warmup_updates of the heave channel
     predictor_min_calibration: int = 25  # ChannelParams.min_calibration (scored paths)
+    # a deck moving under the vehicle (_deck_moving): a firmer final descent and LANDED (thrust
+    # off, the weight on the gear) sooner after contact: at hover thrust the gear carries
+    # nothing and the swaying deck slides out from under it (README "Firm touchdown")
+    moving_final_speed_mps: float = 0.15
+    moving_commit_plan_speed_mps: float = 0.10
+    moving_landed_press_m: float = 0.04
+    moving_landed_hold_s: float = 0.1
+    moving_landed_height_tol_m: float = 0.025  # ... within this of gear height (the deck
+    #                                     receding under a vehicle 3 cm up refuses travel too)
+    # a deck never seen (no fix from the beacon or telemetry) may have moved off the landing
+    # area: the search climbs to where the camera's footprint (Pixy 75° x 47°: +-0.77 h x
+    # +-0.43 h) is wide, turning so the wide axis sweeps round, and the area gate grows with
+    # the distance such a deck can have gone (README "Deck never seen")
+    wide_search_height_m: float = 8.0   # above the surface below; <= the beacon's range
+    wide_search_climb_mps: float = 2.5   # below PX4 MPC_Z_VEL_MAX_UP (3 m/s)
+    wide_search_accel_mps2: float = 1.0  # its climb (PX4 MPC_ACC_UP_MAX: 4 m/s^2)
+    wide_search_yaw_rate_radps: float = 0.5
+    max_deck_speed_mps: float = 1.0     # wide search: the gate grows this fast (0: fixed)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -146,6 +164,10 @@ class PlannerParams:
                 if not isinstance(value, bool):
                     raise ValueError(f'PlannerParams.timed_touchdown must be a bool, '
                                      f'got {value!r}')
+            elif f.name == 'max_deck_speed_mps':
+                if not _finite(value) or isinstance(value, bool) or value < 0.0:
+                    raise ValueError(f'PlannerParams.max_deck_speed_mps must be finite and '
+                                     f'>= 0, got {value!r}')
             elif f.name == 'deck_yaw_offset_rad':
                 if not _finite(value) or isinstance(value, bool):
                     raise ValueError(f'PlannerParams.deck_yaw_offset_rad must be finite, '
@@ -157,15 +179,18 @@ class PlannerParams:
         if self.acceptance_hysteresis < 1.0:
             raise ValueError('PlannerParams.acceptance_hysteresis must be >= 1')
         if not (self.gear_height_m < self.final_approach_height_m < self.approach_height_m
-                <= self.search_height_m):
+                <= self.search_height_m <= self.wide_search_height_m):
             raise ValueError('PlannerParams heights must satisfy gear_height_m < '
-                             'final_approach_height_m < approach_height_m <= search_height_m')
-        if self.landed_press_m >= self.final_press_m:
-            raise ValueError('PlannerParams.landed_press_m must be < final_press_m (the '
+                             'final_approach_height_m < approach_height_m <= search_height_m '
+                             '<= wide_search_height_m')
+        if max(self.landed_press_m, self.moving_landed_press_m) >= self.final_press_m:
+            raise ValueError('PlannerParams.landed_press_m and moving_landed_press_m must be < '
+                             'final_press_m (the '
                              'reference must be able to press that far below contact)')
-        if max(self.final_leash_m, self.commit_leash_m) >= self.landed_press_m:
+        if (max(self.final_leash_m, self.commit_leash_m)
+                >= min(self.landed_press_m, self.moving_landed_press_m)):
             raise ValueError('PlannerParams.final_leash_m and commit_leash_m must be < '
-                             'landed_press_m')
+                             'landed_press_m and moving_landed_press_m')
         if self.max_xy_dist_m < self.acceptance_radius_m:
             raise ValueError('PlannerParams.max_xy_dist_m must be >= acceptance_radius_m')
         if not (self.gear_height_m + self.commit_clearance_m < self.final_approach_height_m):
@@ -279,8 +304,9 @@ class LandingPlanner:
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'bad_dt': 0}
         self._state: _State = _STATES[Mode.IDLE]
         self._search = SearchPattern(p.max_searches, p.search_radius_m, p.search_hold_s)
-        self._zref = ReferenceGenerator(ReferenceLimits(p.vertical_accel_mps2,
-                                                        p.vertical_jerk_mps3))
+        self._limits = ReferenceLimits(p.vertical_accel_mps2, p.vertical_jerk_mps3)
+        self._wide_limits = ReferenceLimits(p.wide_search_accel_mps2, p.vertical_jerk_mps3)
+        self._zref = ReferenceGenerator(self._limits)
         self._zref_ok = False
         self._leash_taken_m = 0.0   # what the leash took back in the landed band (_leash)
         self._leash_h: float | None = None   # the height the leash holds to (low-passed h)
@@ -292,6 +318,7 @@ class LandingPlanner:
         self._sp: tuple[float, float] | None = None
         self._ff = (0.0, 0.0)
         self._yaw: float | None = None
+        self._t_started = math.nan
         self._t_last: float | None = None
         self._t_target_ok = -math.inf
         self._ambiguous = False     # target σ above max_target_sigma_m (README "False blobs")
@@ -334,6 +361,7 @@ class LandingPlanner:
             return False, 'landed: take off first'
         self._search.reset()
         self.go_arounds = 0
+        self._t_started = t_s       # the area gate grows from here until a fix
         self._yaw = None            # latch the current heading at the next step
         self._switch_to(Mode.APPROACH, t_s, 'start_landing requested (Step 1)', entry_now=False)
         return True, 'landing started'
@@ -402,8 +430,12 @@ class LandingPlanner:
         state.horizontal(self, tk)
         if self.mode in _DECK_MODES:
             self._align_yaw(dt_s)
+        elif self.mode is Mode.SEARCH and self._wide_search() and self._yaw is not None:
+            self._yaw = _wrap(self._yaw + p.wide_search_yaw_rate_radps * dt_s)
         z_target, z_speed = self._stop_here() if paused else state.vertical(self, tk)
         if self._zref_ok:
+            self._zref.limits = (self._wide_limits if self.mode is Mode.SEARCH
+                                 and self._wide_search() else self._limits)
             self._zref.step(z_target, z_speed, dt_s)
             if vert_ok:
                 self._leash(dt_s)
@@ -469,7 +501,7 @@ class LandingPlanner:
             self.rejected['nan'] += 1
             return False, (0.0, 0.0)
         self._rel = (rp[0], rp[1])
-        if math.hypot(*self._gate_offset(t_s, ap)) > self.params.max_xy_dist_m:
+        if math.hypot(*self._gate_offset(t_s, ap)) > self._gate_m(t_s):
             # like ArduPilot PLND_XY_DIST_MAX, measured from where the deck is predicted to
             # be (DeckTrack), not from a world-fixed area a moving deck can leave. Kept for a
             # followed track too: it also guards against a diverging estimate (sea_state_4
@@ -483,6 +515,16 @@ class LandingPlanner:
         self._t_target_ok = t_s
         self._last_target = (ap[0], ap[1])
         return True, (rp[0], rp[1])
+
+    def _gate_m(self, t_s: float) -> float:
+        """The area gate: ``max_xy_dist_m``; in a wide search (the deck was not at the area
+        and has never been seen) grown by how far a deck at ``max_deck_speed_mps`` can have
+        gone since the landing started."""
+        p = self.params
+        if (self.mode is not Mode.SEARCH or not self._wide_search()
+                or not math.isfinite(self._t_started)):
+            return p.max_xy_dist_m
+        return p.max_xy_dist_m + p.max_deck_speed_mps * max(0.0, t_s - self._t_started)
 
     def _gate_offset(self, t_s: float, ap: tuple[float, float]) -> tuple[float, float]:
         """The target minus where the deck is predicted to be (before this step's fix)."""
@@ -652,7 +694,7 @@ class LandingPlanner:
             return
         hold = p.gear_height_m + p.commit_clearance_m
         if (abs(self._zref.z_m - hold) > 0.02
-                or abs(self._zref.z_dot_mps) > p.final_speed_mps + 0.01):
+                or abs(self._zref.z_dot_mps) > self._final_speed() + 0.01):
             return     # still settling onto the hold height
         latch.t_check = t
         w = self._window(t, tk.vehicle, h)
@@ -669,7 +711,9 @@ class LandingPlanner:
         p = self.params
         nx, ny = pad_normal_xy(v.roll_rad, v.pitch_rad, v.yaw_rad)
         plan = DescentPlan(height_m=max(h - p.gear_height_m, 0.01),
-                           closing_speed_mps=p.commit_plan_speed_mps,
+                           closing_speed_mps=(p.moving_commit_plan_speed_mps
+                                              if self._firm()
+                                              else p.commit_plan_speed_mps),
                            follow_lag_s=p.commit_follow_lag_s,
                            vehicle_vz_mps=float(v.velocity_mps[2]),
                            vehicle_normal_x=nx, vehicle_normal_y=ny)
@@ -753,6 +797,20 @@ class LandingPlanner:
         """The deck is predicted moving, or was once tracked faster than a drifting barge."""
         return self._tp.moving or self._track.max_speed_mps > _MOVING_MPS
 
+    def _wide_search(self) -> bool:
+        """Search wide: the deck has never been seen (no fix) and may have moved off."""
+        return not self._track.has_fix
+
+    def _final_speed(self) -> float:
+        """Step 10's descent speed: firmer on a moving deck (README "Firm touchdown")."""
+        p = self.params
+        return p.moving_final_speed_mps if self._firm() else p.final_speed_mps
+
+    def _firm(self) -> bool:
+        """A firm touchdown: the deck's RMS speed over the last seconds of fixes is that of
+        a moving deck (translating, or swaying on a rolling hull), not a drifting barge."""
+        return self._track.rms_speed_mps > _MOVING_MPS
+
     def _check_landed(self, tk: _Tick) -> None:
         """FINAL, FALLBACK: Step 15 → Step 16."""
         if self._landed(tk.t_s, tk.vert_ok, tk.closing, tk.vehicle, tk.veh_ok):
@@ -771,9 +829,12 @@ class LandingPlanner:
         p = self.params
         h = self._height if self._height is not None else math.nan   # NaN: never resting
         datum = self._surface if self._vframe == VERTICAL_WORLD_RATE else 0.0
-        pressing = self._zref_ok and self._zref.z_m - datum <= h - p.landed_press_m
+        press, hold, tol = ((p.moving_landed_press_m, p.moving_landed_hold_s,
+                             p.moving_landed_height_tol_m) if self._firm()
+                            else (p.landed_press_m, p.landed_hold_s, p.landed_height_tol_m))
+        pressing = self._zref_ok and self._zref.z_m - datum <= h - press
         cond = (veh_ok and vehicle.landed) or (
-            vert_ok and pressing and h - p.gear_height_m <= p.landed_height_tol_m
+            vert_ok and pressing and h - p.gear_height_m <= tol
             and abs(closing) <= p.landed_speed_tol_mps)
         if not cond:
             self._l.t_landed_cond = None
@@ -782,7 +843,7 @@ class LandingPlanner:
             return True
         if self._l.t_landed_cond is None:
             self._l.t_landed_cond = t_s
-        return t_s - self._l.t_landed_cond >= p.landed_hold_s
+        return t_s - self._l.t_landed_cond >= hold
 
     # --- references (shared by the mode handlers) ----------------------------------------
     def _wanted_frame(self) -> str:
@@ -847,7 +908,8 @@ class LandingPlanner:
         in_band = h - p.gear_height_m <= p.landed_height_tol_m
         if not in_band:
             self._leash_taken_m = 0.0
-        elif self._leash_taken_m >= p.landed_press_m - leash:
+        elif self._leash_taken_m >= (p.moving_landed_press_m if self._firm()
+                                     else p.landed_press_m) - leash:
             return      # let go: the reference presses on toward its target
         # above the landed band the smaller of h and its low-pass: a noise spike up cannot lift
         # z_d, and a deck coming up (h falling faster than the filter) is seen at once. In the
@@ -1090,7 +1152,11 @@ class _Align(_State):
     """ALIGN (Steps 3-5): over the deck at the entry height until inside the radius."""
 
     def enter(self, pl: LandingPlanner, here: tuple[float, float]) -> None:
-        pl._l.hold_height_m = max(pl._stop_z(), pl.params.final_approach_height_m)
+        p = pl.params
+        # from a wide search: down to the search height (the acceptance radius is the
+        # paper's for 2-3.5 m; at 8 m the estimate's noise alone keeps the vehicle out of it)
+        pl._l.hold_height_m = min(max(pl._stop_z(), p.final_approach_height_m),
+                                  p.search_height_m)
         pl._path_active = False
 
     def run(self, pl: LandingPlanner, tk: _Tick) -> None:
@@ -1192,8 +1258,8 @@ class _Final(_State):
             if tk.lost_for > p.target_lost_timeout_s:
                 # lost in the hold: up to where the camera's footprint is wider (run())
                 return p.final_approach_height_m, p.vertical_speed_mps
-            return p.gear_height_m + p.commit_clearance_m, p.final_speed_mps
-        return p.gear_height_m - p.final_press_m, p.final_speed_mps
+            return p.gear_height_m + p.commit_clearance_m, pl._final_speed()
+        return p.gear_height_m - p.final_press_m, pl._final_speed()
 
 
 class _Search(_State):
@@ -1218,7 +1284,10 @@ class _Search(_State):
                 pl._start_path(goal, relative=True)
 
     def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
-        return pl.params.search_height_m, pl.params.vertical_speed_mps
+        p = pl.params
+        if pl._wide_search():
+            return p.wide_search_height_m, p.wide_search_climb_mps
+        return p.search_height_m, p.vertical_speed_mps
 
 
 class _Fallback(_State):
@@ -1240,7 +1309,7 @@ class _Fallback(_State):
     def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
         p = pl.params
         fast = pl._zref.z_m > p.final_approach_height_m
-        speed = p.fallback_speed_mps if fast else p.final_speed_mps
+        speed = p.fallback_speed_mps if fast else pl._final_speed()
         return p.gear_height_m - p.final_press_m, speed
 
 
