@@ -64,6 +64,17 @@ _HOLD_LOST_FACTOR = 3.0   # FINAL hold: lost this many target_lost_timeout_s →
 
 
 @dataclass(frozen=True, slots=True)
+class _TouchdownRule:
+    """Final speed, commit plan speed and the LANDED press / hold / band of one deck kind."""
+
+    final_speed_mps: float
+    plan_speed_mps: float
+    press_m: float
+    hold_s: float
+    height_tol_m: float
+
+
+@dataclass(frozen=True, slots=True)
 class PlannerParams:
     """Parameters of :class:`LandingPlanner` (SI units, validated at construction)."""
 
@@ -124,9 +135,9 @@ class PlannerParams:
     max_go_arounds: int = 2             # deck broke the prediction: at most this many
     predictor_warmup_updates: int = 20  # ChannelParams.warmup_updates of the heave channel
     predictor_min_calibration: int = 25  # ChannelParams.min_calibration (scored paths)
-    # a deck moving under the vehicle (_deck_moving): a firmer final descent and LANDED (thrust
-    # off, the weight on the gear) sooner after contact: at hover thrust the gear carries
-    # nothing and the swaying deck slides out from under it (README "Firm touchdown")
+    # a deck moving under the vehicle (DeckTrack.rms_speed_mps): a firmer final descent and
+    # LANDED (thrust off, the weight on the gear) sooner after contact: at hover thrust the gear
+    # carries nothing and the swaying deck slides out from under it (README "Firm touchdown")
     moving_final_speed_mps: float = 0.15
     moving_commit_plan_speed_mps: float = 0.10
     moving_landed_press_m: float = 0.04
@@ -134,7 +145,7 @@ class PlannerParams:
     moving_landed_height_tol_m: float = 0.025  # ... within this of gear height (the deck
     #                                     receding under a vehicle 3 cm up refuses travel too)
     # a deck never seen (no fix from the beacon or telemetry) may have moved off the landing
-    # area: the search climbs to where the camera's footprint (Pixy 75° x 47°: +-0.77 h x
+    # area: the search climbs to where the camera's footprint (Pixy 60° x 47°: +-0.58 h x
     # +-0.43 h) is wide, turning so the wide axis sweeps round, and the area gate grows with
     # the distance such a deck can have gone (README "Deck never seen")
     wide_search_height_m: float = 8.0   # above the surface below; <= the beacon's range
@@ -304,6 +315,12 @@ class LandingPlanner:
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'bad_dt': 0}
         self._state: _State = _STATES[Mode.IDLE]
         self._search = SearchPattern(p.max_searches, p.search_radius_m, p.search_hold_s)
+        self._at_rest = _TouchdownRule(p.final_speed_mps, p.commit_plan_speed_mps,
+                                       p.landed_press_m, p.landed_hold_s,
+                                       p.landed_height_tol_m)
+        self._firm = _TouchdownRule(p.moving_final_speed_mps, p.moving_commit_plan_speed_mps,
+                                    p.moving_landed_press_m, p.moving_landed_hold_s,
+                                    p.moving_landed_height_tol_m)
         self._limits = ReferenceLimits(p.vertical_accel_mps2, p.vertical_jerk_mps3)
         self._wide_limits = ReferenceLimits(p.wide_search_accel_mps2, p.vertical_jerk_mps3)
         self._zref = ReferenceGenerator(self._limits)
@@ -428,14 +445,14 @@ class LandingPlanner:
         self._update_frame()
         state = self._state
         state.horizontal(self, tk)
+        wide = self.mode is Mode.SEARCH and self._wide_search()
         if self.mode in _DECK_MODES:
             self._align_yaw(dt_s)
-        elif self.mode is Mode.SEARCH and self._wide_search() and self._yaw is not None:
+        elif wide and self._yaw is not None:
             self._yaw = _wrap(self._yaw + p.wide_search_yaw_rate_radps * dt_s)
         z_target, z_speed = self._stop_here() if paused else state.vertical(self, tk)
         if self._zref_ok:
-            self._zref.limits = (self._wide_limits if self.mode is Mode.SEARCH
-                                 and self._wide_search() else self._limits)
+            self._zref.limits = self._wide_limits if wide else self._limits
             self._zref.step(z_target, z_speed, dt_s)
             if vert_ok:
                 self._leash(dt_s)
@@ -694,7 +711,7 @@ class LandingPlanner:
             return
         hold = p.gear_height_m + p.commit_clearance_m
         if (abs(self._zref.z_m - hold) > 0.02
-                or abs(self._zref.z_dot_mps) > self._final_speed() + 0.01):
+                or abs(self._zref.z_dot_mps) > self._touchdown().final_speed_mps + 0.01):
             return     # still settling onto the hold height
         latch.t_check = t
         w = self._window(t, tk.vehicle, h)
@@ -711,9 +728,7 @@ class LandingPlanner:
         p = self.params
         nx, ny = pad_normal_xy(v.roll_rad, v.pitch_rad, v.yaw_rad)
         plan = DescentPlan(height_m=max(h - p.gear_height_m, 0.01),
-                           closing_speed_mps=(p.moving_commit_plan_speed_mps
-                                              if self._firm()
-                                              else p.commit_plan_speed_mps),
+                           closing_speed_mps=self._touchdown().plan_speed_mps,
                            follow_lag_s=p.commit_follow_lag_s,
                            vehicle_vz_mps=float(v.velocity_mps[2]),
                            vehicle_normal_x=nx, vehicle_normal_y=ny)
@@ -801,15 +816,11 @@ class LandingPlanner:
         """Search wide: the deck has never been seen (no fix) and may have moved off."""
         return not self._track.has_fix
 
-    def _final_speed(self) -> float:
-        """Step 10's descent speed: firmer on a moving deck (README "Firm touchdown")."""
-        p = self.params
-        return p.moving_final_speed_mps if self._firm() else p.final_speed_mps
-
-    def _firm(self) -> bool:
-        """A firm touchdown: the deck's RMS speed over the last seconds of fixes is that of
-        a moving deck (translating, or swaying on a rolling hull), not a drifting barge."""
-        return self._track.rms_speed_mps > _MOVING_MPS
+    def _touchdown(self) -> _TouchdownRule:
+        """Step 10's speed and Step 15's rule: the firm set when the deck's RMS speed over
+        the last seconds of fixes is that of a moving deck (translating, or swaying on a
+        rolling hull), not a drifting barge (README "Firm touchdown")."""
+        return self._firm if self._track.rms_speed_mps > _MOVING_MPS else self._at_rest
 
     def _check_landed(self, tk: _Tick) -> None:
         """FINAL, FALLBACK: Step 15 → Step 16."""
@@ -829,12 +840,10 @@ class LandingPlanner:
         p = self.params
         h = self._height if self._height is not None else math.nan   # NaN: never resting
         datum = self._surface if self._vframe == VERTICAL_WORLD_RATE else 0.0
-        press, hold, tol = ((p.moving_landed_press_m, p.moving_landed_hold_s,
-                             p.moving_landed_height_tol_m) if self._firm()
-                            else (p.landed_press_m, p.landed_hold_s, p.landed_height_tol_m))
-        pressing = self._zref_ok and self._zref.z_m - datum <= h - press
+        rule = self._touchdown()
+        pressing = self._zref_ok and self._zref.z_m - datum <= h - rule.press_m
         cond = (veh_ok and vehicle.landed) or (
-            vert_ok and pressing and h - p.gear_height_m <= tol
+            vert_ok and pressing and h - p.gear_height_m <= rule.height_tol_m
             and abs(closing) <= p.landed_speed_tol_mps)
         if not cond:
             self._l.t_landed_cond = None
@@ -843,7 +852,7 @@ class LandingPlanner:
             return True
         if self._l.t_landed_cond is None:
             self._l.t_landed_cond = t_s
-        return t_s - self._l.t_landed_cond >= hold
+        return t_s - self._l.t_landed_cond >= rule.hold_s
 
     # --- references (shared by the mode handlers) ----------------------------------------
     def _wanted_frame(self) -> str:
@@ -908,8 +917,7 @@ class LandingPlanner:
         in_band = h - p.gear_height_m <= p.landed_height_tol_m
         if not in_band:
             self._leash_taken_m = 0.0
-        elif self._leash_taken_m >= (p.moving_landed_press_m if self._firm()
-                                     else p.landed_press_m) - leash:
+        elif self._leash_taken_m >= self._touchdown().press_m - leash:
             return      # let go: the reference presses on toward its target
         # above the landed band the smaller of h and its low-pass: a noise spike up cannot lift
         # z_d, and a deck coming up (h falling faster than the filter) is seen at once. In the
@@ -1258,8 +1266,8 @@ class _Final(_State):
             if tk.lost_for > p.target_lost_timeout_s:
                 # lost in the hold: up to where the camera's footprint is wider (run())
                 return p.final_approach_height_m, p.vertical_speed_mps
-            return p.gear_height_m + p.commit_clearance_m, pl._final_speed()
-        return p.gear_height_m - p.final_press_m, pl._final_speed()
+            return p.gear_height_m + p.commit_clearance_m, pl._touchdown().final_speed_mps
+        return p.gear_height_m - p.final_press_m, pl._touchdown().final_speed_mps
 
 
 class _Search(_State):
@@ -1309,7 +1317,7 @@ class _Fallback(_State):
     def vertical(self, pl: LandingPlanner, tk: _Tick) -> tuple[float, float]:
         p = pl.params
         fast = pl._zref.z_m > p.final_approach_height_m
-        speed = p.fallback_speed_mps if fast else pl._final_speed()
+        speed = p.fallback_speed_mps if fast else pl._touchdown().final_speed_mps
         return p.gear_height_m - p.final_press_m, speed
 
 
