@@ -138,43 +138,49 @@ def test_telemetry_loss_and_delay_bound_the_error():
     assert max(errs) < 0.7 and sum(errs) / len(errs) < 0.4
 
 
-def _barge(fusion):
+def _barge(fusion, accel=None):
+    """10 s of a barge accelerating at 0.3 m/s² east, beacon only; ``accel``: the beacon
+    filter's deck acceleration passed along (None: not known)."""
     rng = random.Random(4)
     st = None
     for k in range(1, 1001):
         t = k * 0.01
         pos = (0.15 * t * t + rng.gauss(0.0, 0.02), 1.0 + rng.gauss(0.0, 0.02))
         vel = (0.3 * t + rng.gauss(0.0, 0.05), rng.gauss(0.0, 0.05))
-        st = fusion.fuse(beacon_state(t, True, pos, vel))
+        st = fusion.fuse(beacon_state(t, True, pos, vel), accel)
     return st
 
 
-def test_by_default_the_beacon_alone_publishes_no_deck_acceleration():
-    """The beacon's acceleration is the derivative of vehicle velocity + relative velocity:
-    fed forward it closes a loop through the vehicle (paper_translating seeds 100001-100004
-    landed 2 of 4 with it, 4 of 4 without), so only telemetry's is published by default."""
+def test_the_beacon_filters_deck_acceleration_is_published_and_preferred_to_telemetry():
+    """While tracked, the acceleration published is the beacon filter's (D6) when it is
+    known, telemetry's otherwise (0 without either); ``beacon_accel`` off: telemetry's."""
     st = _barge(DeckFusion(DeckFusionParams(prediction_timeout_s=10.0)))
     assert st.source == 'beacon' and st.apron_accel_mps2 == (0.0, 0.0)
     assert st.apron_velocity_mps[0] == pytest.approx(3.0, abs=0.2)   # the velocity still is
-
-
-def test_without_telemetry_the_beacon_gives_the_acceleration_and_the_prediction():
-    """A barge accelerating at 0.3 m/s² east, beacon only, ``beacon_accel`` on: the
-    acceleration is learnt from the beacon's velocity, and when the beacon is lost the deck
-    is predicted at the last velocity (constant-velocity model)."""
-    fusion = DeckFusion(DeckFusionParams(prediction_timeout_s=10.0, beacon_accel=True))
-    rng = random.Random(4)
-    a = 0.3
-    st = None
-    for k in range(1, 1001):
+    st = _barge(DeckFusion(DeckFusionParams(prediction_timeout_s=10.0)), (0.3, -0.02))
+    assert st.apron_accel_mps2 == (0.3, -0.02)
+    f = DeckFusion(DeckFusionParams(prediction_timeout_s=10.0, accel_tau_s=0.2))
+    for k in range(1, 301):                      # telemetry says the deck accelerates north
         t = k * 0.01
-        pos = (0.5 * a * t * t + rng.gauss(0.0, 0.02), 1.0 + rng.gauss(0.0, 0.02))
-        vel = (a * t + rng.gauss(0.0, 0.05), rng.gauss(0.0, 0.05))
-        st = fusion.fuse(beacon_state(t, True, pos, vel))
-        assert st.source == 'beacon' and not st.deck_attitude_valid
-    assert st is not None
-    assert st.apron_accel_mps2[0] == pytest.approx(a, abs=0.05)
-    assert abs(st.apron_accel_mps2[1]) < 0.05
+        if k % 20 == 0:
+            f.on_telemetry(t, (0.0, 0.5 * t * t, 0.0), (0.0, 1.0 * t, 0.0))
+        st = f.fuse(beacon_state(t, True), None if k < 250 else (0.3, 0.0))
+        if k == 249:
+            assert st.apron_accel_mps2[0] == 0.0
+            assert st.apron_accel_mps2[1] == pytest.approx(1.0, abs=0.05)
+    assert st.apron_accel_mps2 == (0.3, 0.0)
+    off = DeckFusion(DeckFusionParams(beacon_accel=False))
+    assert _barge(off, (0.3, 0.0)).apron_accel_mps2 == (0.0, 0.0)
+    with pytest.raises(ValueError, match='beacon_accel'):
+        DeckFusionParams(beacon_accel=1)
+
+
+def test_without_telemetry_a_lost_beacon_is_predicted_at_constant_velocity():
+    """Beacon only: when it is lost the deck is predicted at the last velocity (constant-
+    velocity model, no acceleration) for ``prediction_timeout_s``, then nothing."""
+    fusion = DeckFusion(DeckFusionParams(prediction_timeout_s=10.0))
+    st = _barge(fusion, (0.3, 0.0))
+    assert st is not None and st.source == 'beacon' and not st.deck_attitude_valid
     last_pos, last_vel = st.apron_position_m, st.apron_velocity_mps
     p2 = fusion.fuse(beacon_state(12.0, False))
     assert p2.source == 'prediction' and p2.apron_accel_mps2 == (0.0, 0.0)

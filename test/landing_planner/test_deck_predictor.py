@@ -11,6 +11,7 @@ comments (seed 1; docs/predictor.md).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 import pathlib
@@ -29,6 +30,7 @@ from landing_planner.deck_predictor import (
     ChannelPredictor,
     DeckPredictor,
     DeckPredictorParams,
+    TiltCoupling,
     pad_normal_xy,
 )
 import pytest
@@ -466,6 +468,90 @@ def test_tilt_limits_the_window():
                     bad += abs(roll) > math.radians(5.0)
                 assert w.tilt_hi_rad <= math.radians(5.0)
     assert good > 20 and bad == 0
+
+
+def _rolling_deck_window(plan, params=None, seconds=120.0):
+    """Commits-now over a deck rolling 8° (8 s period, heaving 5 cm): [(window, roll at
+    contact, roll 0.3 s later)]."""
+    rows = synthetic(deck.SineHeave(0.05, 8.0, 0.0).state, seconds)
+    pred = DeckPredictor()
+    out = []
+    t_tilt = 0.0
+    for i, row in enumerate(rows):
+        t = row[0]
+        bench.feed(pred, row)
+        if t >= t_tilt:
+            roll = math.radians(8.0) * math.sin(2 * math.pi * t / 8.0)
+            pred.on_tilt(t, *pad_normal_xy(roll, 0.0, 0.0))
+            t_tilt += 0.1
+        if pred.ready and pred.tilt_ready and i % 25 == 0 and i < len(rows) - 600:
+            w = find_window(t, pred.snapshot(), plan, params or CommitParams())
+            rolls = [math.radians(8.0) * math.sin(2 * math.pi * tc / 8.0)
+                     for tc in (w.contact_s, w.contact_s + 0.3)]
+            out.append((w, *rolls))
+    return out
+
+
+def test_a_vehicle_that_tilts_with_the_pad_moves_the_tilt_window():
+    """The vehicle's normal at contact is vehicle_normal + normal_gain · n_pad (TiltCoupling):
+    one leaning against the pad's roll (gain −0.6, a pad swaying above its roll axis) sees
+    1.6× the roll, and the windows shrink to 1.6 |roll| ≤ 5°; one that leans with it (gain 1)
+    sees none, and the tilt no longer limits the commits."""
+    def plan(gain):
+        return dataclasses.replace(_follow_plan(0.0), normal_gain_y=gain)
+    level = [r for r in _rolling_deck_window(plan(0.0)) if r[0].commit_now]
+    against = [r for r in _rolling_deck_window(plan(-0.6)) if r[0].commit_now]
+    along = [r for r in _rolling_deck_window(plan(1.0)) if r[0].commit_now]
+    assert against and all(1.6 * abs(r) <= math.radians(5.0) for w, *rolls in against
+                           for r in rolls)
+    assert len(against) < len(level) < len(along)
+    assert max(abs(r) for w, *rolls in along for r in rolls) > math.radians(5.0)
+    assert all(w.tilt_hi_rad <= math.radians(5.0) for w, *_ in against + along)
+
+
+def test_without_a_window_the_best_commit_is_the_one_nearest_every_limit():
+    """A 1° tilt limit no roll of 8° meets: no window, and the best commit offered is the one
+    with the lowest max(speed bound / limit, tilt bound / limit): the tilt decides it."""
+    rows = _rolling_deck_window(_follow_plan(0.0), CommitParams(max_tilt_rad=math.radians(1.0)))
+    assert rows and not any(w.found for w, *_ in rows)
+    best = [w for w, *_ in rows if math.isfinite(w.best_risk)]
+    assert len(best) > 0.8 * len(rows)
+    for w in best:
+        assert w.best_risk == pytest.approx(max(w.best_speed_hi_mps / 0.15,
+                                                w.best_tilt_hi_rad / math.radians(1.0)))
+        assert w.best_risk > 1.0
+        # the tilt decides it: among commits all over the tilt limit, one within the speed's
+        assert w.best_tilt_hi_rad / math.radians(1.0) >= w.best_speed_hi_mps / 0.15
+        assert w.best_speed_hi_mps <= 0.15
+
+
+def test_tilt_coupling_learns_how_the_vehicle_leans_with_the_pad():
+    """n_vehicle = trim + K n_pad + noise, per axis: K, trim and the residual σ recovered;
+    nothing before min_time_s, nor over a level pad; bad samples ignored."""
+    rng = random.Random(5)
+    tc = TiltCoupling(tau_s=10.0, min_time_s=5.0)
+    assert tc.model() is None
+    k, trim, noise = (-0.4, 0.8), (0.03, -0.02), 0.01
+    t = 0.0
+    while t < 60.0:
+        n = (0.1 * math.sin(2 * math.pi * t / 7.0), 0.05 * math.sin(2 * math.pi * t / 5.0))
+        v = [trim[i] + k[i] * n[i] + rng.gauss(0.0, noise) for i in range(2)]
+        assert tc.on_sample(t, n[0], n[1], v[0], v[1])
+        if t < 4.9:
+            assert tc.model() is None
+        t += 0.1
+    gains, trims, sig = tc.model()
+    assert gains == pytest.approx(k, abs=0.05)
+    assert trims == pytest.approx(trim, abs=0.005)
+    assert sig == pytest.approx((noise, noise), rel=0.3)
+    assert not tc.on_sample(t - 1.0, 0.0, 0.0, 0.0, 0.0)          # older
+    assert not tc.on_sample(t + 1.0, math.nan, 0.0, 0.0, 0.0)
+    flat = TiltCoupling()
+    for j in range(200):
+        flat.on_sample(j * 0.1, 0.001, 0.0, 0.02 + rng.gauss(0.0, 0.01), 0.0)
+    assert flat.model() is None                          # a level pad teaches nothing
+    with pytest.raises(ValueError, match='tau_s'):
+        TiltCoupling(tau_s=0.0)
 
 
 # -- the monitor ------------------------------------------------------------------------------

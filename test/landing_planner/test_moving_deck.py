@@ -67,6 +67,26 @@ def test_track_prefers_the_beacon_then_telemetry_then_predicts_at_constant_veloc
     assert q.moving
 
 
+def test_only_a_telemetry_fix_carries_its_acceleration_into_the_prediction():
+    """The ship's acceleration is carried on for ``accel_horizon_s``; the beacon filter's
+    (a sway's, or noise on a deck at rest) only serves at the fix: carried, 0.3 m/s² became
+    0.3 m/s of drift and a static deck lost behind an occlusion was searched for metres away."""
+    for src, accepted in ((DECK_SOURCE_TELEMETRY, False), (DECK_SOURCE_BEACON, True)):
+        tr = DeckTrack((0.0, 0.0), DeckTrackParams(accel_horizon_s=1.0))
+        a = dataclasses.replace(make_apron(0.0, (0.0, 0.0), (2.0, 0.0)), source=src,
+                                apron_position_m=(2.0, 0.0), apron_velocity_mps=(0.0, 0.0),
+                                apron_accel_mps2=(0.3, 0.0))
+        assert tr.update(0.0, a, accepted=accepted) == src
+        assert tr.at(0.0).accel_mps2 == (0.3, 0.0)          # the feed-forward at the fix
+        q = tr.at(5.0)
+        if src == DECK_SOURCE_TELEMETRY:
+            assert q.velocity_mps[0] == pytest.approx(0.3)
+            assert q.position_m[0] == pytest.approx(2.0 + 0.15 + 0.3 * 4.0)
+        else:
+            assert q.velocity_mps == (0.0, 0.0) and q.position_m == (2.0, 0.0)
+        assert q.accel_mps2 == (0.0, 0.0)
+
+
 def test_track_velocity_is_filtered_so_one_noisy_sample_does_not_send_it_off():
     tr = DeckTrack((0.0, 0.0), DeckTrackParams(velocity_filter_s=0.5))
     for k in range(200):
@@ -435,6 +455,25 @@ def test_the_same_descent_without_the_window_does_touch_down_in_a_reversal():
             sim.step()
         worst = max(worst, sim.contact_speed)
     assert worst > CommitParams().max_normal_speed_mps
+
+
+def test_the_pad_tilt_is_predicted_from_telemetry_while_the_beacon_is_tracked():
+    """The beacon fixes where the pad is, not how it leans: the ship's attitude feeds the tilt
+    prediction whatever the position's source (before, only a lost beacon's telemetry did,
+    so over the pad, where the window needs it, the tilt was never ready)."""
+    pl = LandingPlanner(PlannerParams())
+    pl.start_landing(0.0)
+    for k in range(3000):
+        t = k * DT
+        roll = 0.1 * math.sin(2.0 * math.pi * t / 7.0)
+        a = dataclasses.replace(telemetry(t, (0.0, 0.0), (0.0, 0.0), (0.02, 0.0), heading=0.0,
+                                          seen=True), deck_rpy_rad=(roll, 0.0, 0.0))
+        assert a.source == DECK_SOURCE_BEACON
+        pl.step(t, DT, make_vehicle(t, (0.02, 0.0), 2.0), a)
+    assert pl.predictor.tilt_ready
+    y = pl.predictor.snapshot().tilt_y.at(30.0)
+    assert y.valid and y.value == pytest.approx(-math.sin(0.1 * math.sin(2 * math.pi * 30 / 7)),
+                                                abs=3 * y.sigma_value + 0.005)
 
 
 def test_without_a_ready_prediction_the_hold_ends_after_the_timeout():

@@ -5,8 +5,9 @@ and velocity, paper (27)-(35)); the ship's telemetry (``deck/odom``: coarse GNSS
 onto the beacon's frame by an offset learnt while both are available — the ship's GNSS error
 plus the vehicle's own local-position bias — and carried to now with its velocity and
 acceleration; a constant-velocity prediction from the last estimate; nothing. The deck's
-acceleration comes from the telemetry's velocity (else, only with ``beacon_accel``, from the
-beacon's, low-passed); its attitude and yaw rate only from telemetry. Design: apron_estimator
+acceleration comes from the beacon track's own filter while it is tracked (``beacon_accel``,
+:class:`apron_estimator.horizontal.DeckAccelKF`), else from the telemetry's velocity; its
+attitude and yaw rate only from telemetry. Design: apron_estimator
 README, "Moving deck".
 """
 
@@ -44,21 +45,21 @@ class DeckFusionParams:
     offset_max_rel_m: float = 0.3         # learn only with the beacon this close below
     beacon_history_s: float = 2.0         # beacon estimates kept to meet delayed telemetry
     prediction_timeout_s: float = 20.0    # constant-velocity prediction at most this long
-    accel_tau_s: float = 1.0              # low-pass of the deck acceleration
-    accel_window_s: float = 0.5           # velocity difference span (beacon)
+    accel_tau_s: float = 1.0              # low-pass of the telemetry's deck acceleration
     max_accel_mps2: float = 5.0           # clamp of the acceleration estimate
-    # publish the beacon-derived acceleration without telemetry (off: it is the derivative of
-    # vehicle velocity + relative velocity, so fed forward it closes a loop through the
-    # vehicle: README "Moving deck", the deck acceleration decision)
-    beacon_accel: bool = False
+    # while tracked, publish the beacon filter's deck acceleration (DeckAccelKF) rather than
+    # the telemetry's (README "Moving deck", D6)
+    beacon_accel: bool = True
 
     def __post_init__(self) -> None:
         o = 'DeckFusionParams'
         for name in ('telemetry_timeout_s', 'attitude_timeout_s', 'attitude_extrapolation_s',
                      'max_extrapolation_s',
                      'offset_tau_s', 'offset_gate_m', 'offset_max_rel_m', 'beacon_history_s',
-                     'prediction_timeout_s', 'accel_tau_s', 'accel_window_s', 'max_accel_mps2'):
+                     'prediction_timeout_s', 'accel_tau_s', 'max_accel_mps2'):
             chk.positive(f'{o}.{name}', getattr(self, name))
+        chk.require(isinstance(self.beacon_accel, bool), f'{o}.beacon_accel', 'must be a bool',
+                    self.beacon_accel)
 
 
 def telemetry_from_odometry(q_wxyz: tuple[float, float, float, float],
@@ -100,9 +101,6 @@ class DeckFusion:
         self._v_ref: tuple[float, float, float] | None = None   # (t, vx, vy) of accel
         self._att: tuple[float, Vec3, Vec3] | None = None       # (t, rpy, Euler rates)
         self._pending: list[tuple[float, float, float]] = []    # telemetry (t, x, y) to meet
-        self._accel: Vec2 = (0.0, 0.0)                          # beacon-derived
-        self._vel_window: deque[tuple[float, float, float]] = deque()   # (t, vx, vy)
-        self._t_accel = -math.inf
         self._last: tuple[float, Vec2, Vec2] | None = None      # last beacon/telemetry output
 
     # -- inputs ----------------------------------------------------------------------------
@@ -199,28 +197,10 @@ class DeckFusion:
         return ((x + ox + vx * dt + 0.5 * ax * dt * dt, y + oy + vy * dt + 0.5 * ay * dt * dt),
                 (vx + ax * dt, vy + ay * dt))
 
-    def _beacon_accel(self, t_s: float, vel: Vec2) -> Vec2:
-        """The deck acceleration from the beacon velocity's difference over
-        ``accel_window_s``, low-passed (amortised O(1): a window of velocities)."""
-        p = self.params
-        w = self._vel_window
-        w.append((t_s, vel[0], vel[1]))
-        while len(w) > 1 and t_s - w[1][0] >= p.accel_window_s:
-            w.popleft()
-        old = w[0]
-        span = t_s - old[0]
-        if span < 0.5 * p.accel_window_s:
-            return self._accel
-        ax, ay = (vel[0] - old[1]) / span, (vel[1] - old[2]) / span
-        dt = max(0.0, t_s - self._t_accel) if math.isfinite(self._t_accel) else p.accel_tau_s
-        a = min(1.0, dt / p.accel_tau_s)
-        cx, cy = self._accel
-        self._accel = (cx + a * (ax - cx), cy + a * (ay - cy))
-        self._t_accel = t_s
-        return self._accel
-
-    def fuse(self, st: ApronState) -> ApronState:
-        """``st`` with source, apron position / velocity / acceleration and deck attitude."""
+    def fuse(self, st: ApronState, beacon_accel_mps2: Vec2 | None = None) -> ApronState:
+        """``st`` with source, apron position / velocity / acceleration and deck attitude.
+        ``beacon_accel_mps2``: the beacon filter's deck acceleration (ENU; None while it is
+        not known: ``HorizontalTracker.deck_accel``)."""
         p = self.params
         t = st.t_s
         h = self._beacon
@@ -228,9 +208,10 @@ class DeckFusion:
         lim = p.max_accel_mps2
         if st.tracked:
             pos, vel = st.apron_position_m, st.apron_velocity_mps
-            # the beacon's window is kept only when it can be published (D6)
-            beacon_acc = self._beacon_accel(t, vel) if p.beacon_accel else (0.0, 0.0)
-            acc = self._tel_accel if tel is not None else beacon_acc
+            if p.beacon_accel and beacon_accel_mps2 is not None:
+                acc = beacon_accel_mps2          # D6
+            else:
+                acc = self._tel_accel if tel is not None else (0.0, 0.0)
             # the camera offsets scale with the height above the surface the lidar sees: from
             # beside the deck (the sea or ground below) they are over-scaled (estimator README,
             # Known limitations); close above the beacon the error is that small fraction
@@ -242,9 +223,6 @@ class DeckFusion:
             source = DECK_SOURCE_BEACON
         else:
             h.clear()
-            self._vel_window.clear()
-            self._t_accel = -math.inf
-            self._accel = (0.0, 0.0)
             if tel is not None:
                 pos, vel = tel
                 acc = self._tel_accel

@@ -298,6 +298,11 @@ class ApronEstimator:
         return t is not None and abs(t_s - t) <= self.params.height_fallback_timeout_s
 
     # -- output ----------------------------------------------------------------------------
+    def deck_accel(self, t_s: float) -> tuple[float, float] | None:
+        """The deck's acceleration (ENU) from the beacon track's filter, None while unknown
+        (``HorizontalTracker.deck_accel``)."""
+        return self.horizontal.deck_accel(t_s)
+
     def state(self, t_s: float) -> ApronState:
         """Everything predicted to t_s; the filters are not changed."""
         if not _isfinite(t_s):

@@ -107,6 +107,98 @@ class AxisPairKF:
                 self.ay + dt * (2.0 * self.by + dt * self.cy))
 
 
+class DeckAccelKF:
+    """The deck's acceleration from the same detections: per ENU axis a [relative position,
+    relative velocity, deck acceleration] Kalman filter (white-jerk deck, Singer-type),
+    driven by the same control input as :class:`AxisPairKF` (u = −vehicle acceleration).
+
+    Per axis, relative acceleration = a_d − a_vehicle; the vehicle's part enters as the
+    control displacements (Δp, Δv), so a_d holds only what the detections say the deck does:
+    a vehicle manoeuvre changes the predicted relative state exactly as it changes the
+    measured one and moves a_d not at all (no loop through the vehicle; README decision 13e).
+    predict: p ← p + v dt + a_d dt²/2 + Δp, v ← v + a_d dt + Δv, a_d ← a_d;
+    P ← F P Fᵀ + Q, Q = q [dt⁵/20, dt⁴/8, dt³/6; ·, dt³/3, dt²/2; ·, ·, dt] (white jerk, PSD q).
+    update on p with variance r (the paper filter's R).
+    """
+
+    __slots__ = ('_p', '_s')
+
+    def __init__(self) -> None:
+        self._s = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]          # per axis: p, v, a_d
+        self._p = [[1.0, 0.0, 0.0, 1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 1.0, 0.0, 1.0]]
+        #            P00  P01  P02  P11  P12  P22
+
+    def reset(self, x: float, y: float, pos_var: float, vel_var: float,
+              acc_var: float) -> None:
+        self._s = [[x, 0.0, 0.0], [y, 0.0, 0.0]]
+        self._p = [[pos_var, 0.0, 0.0, vel_var, 0.0, acc_var],
+                   [pos_var, 0.0, 0.0, vel_var, 0.0, acc_var]]
+
+    def predict(self, dt: float, q: float, dpx: float, dvx: float, dpy: float,
+                dvy: float) -> None:
+        h = 0.5 * dt * dt
+        d3 = dt * dt * dt
+        q00, q01, q02 = q * d3 * dt * dt / 20.0, q * d3 * dt / 8.0, q * d3 / 6.0
+        q11, q12, q22 = q * d3 / 3.0, q * h, q * dt
+        for s, pp, dp, dv in ((self._s[0], self._p[0], dpx, dvx),
+                              (self._s[1], self._p[1], dpy, dvy)):
+            p, v, a = s
+            s[0] = p + v * dt + a * h + dp
+            s[1] = v + a * dt + dv
+            p00, p01, p02, p11, p12, p22 = pp
+            r00 = p00 + dt * p01 + h * p02
+            r01 = p01 + dt * p11 + h * p12
+            r02 = p02 + dt * p12 + h * p22
+            r11 = p11 + dt * p12
+            r12 = p12 + dt * p22
+            pp[0] = r00 + dt * r01 + h * r02 + q00
+            pp[1] = r01 + dt * r02 + q01
+            pp[2] = r02 + q02
+            pp[3] = r11 + dt * r12 + q11
+            pp[4] = r12 + q12
+            pp[5] = p22 + q22
+
+    def update(self, zx: float, zy: float, r: float) -> None:
+        for s, pp, z in ((self._s[0], self._p[0], zx), (self._s[1], self._p[1], zy)):
+            p00, p01, p02, p11, p12, p22 = pp
+            sv = p00 + r
+            nu = z - s[0]
+            k0, k1, k2 = p00 / sv, p01 / sv, p02 / sv
+            s[0] += k0 * nu
+            s[1] += k1 * nu
+            s[2] += k2 * nu
+            pp[0] = p00 - k0 * p00
+            pp[1] = p01 - k0 * p01
+            pp[2] = p02 - k0 * p02
+            pp[3] = p11 - k1 * p01
+            pp[4] = p12 - k1 * p02
+            pp[5] = p22 - k2 * p02
+
+    def shift(self, dx: float, dy: float) -> None:
+        """Move the relative position (the track switched to another blob)."""
+        self._s[0][0] += dx
+        self._s[1][0] += dy
+
+    def scale(self, k: float) -> None:
+        """Multiply the state by k (and P by k²): a change of the measurement's scale."""
+        k2 = k * k
+        for s, pp in zip(self._s, self._p, strict=True):
+            for i in range(3):
+                s[i] *= k
+            for i in range(6):
+                pp[i] *= k2
+
+    @property
+    def accel_mps2(self) -> tuple[float, float]:
+        """The deck acceleration (ENU); constant under prediction."""
+        return self._s[0][2], self._s[1][2]
+
+    @property
+    def accel_sigma_mps2(self) -> float:
+        """Its larger per-axis σ."""
+        return math.sqrt(max(self._p[0][5], self._p[1][5], 0.0))
+
+
 class NoiseScale:
     """A measurement-noise scale λ ≥ 1 learnt from the filter's innovations (covariance
     matching, Mehra 1972): E[ν²] = H P⁻ Hᵀ + R, so each accepted update gives the sample
@@ -268,9 +360,18 @@ class HorizontalParams:
     adapt_noise: bool = True
     adapt_weight: float = 0.02        # per accepted frame (≈ 1 s at 50 Hz)
     adapt_max_scale: float = 25.0     # λ ≤ this (σ up to 5× the configured one)
+    # the deck's acceleration (DeckAccelKF, decision 13e): white-jerk PSD, initial σ, and the
+    # σ below which it is published (fed forward by the planner)
+    deck_jerk_psd_m2ps5: float = 1.0
+    deck_accel_init_sigma_mps2: float = 2.0
+    deck_accel_max_sigma_mps2: float = 1.0
+    deck_accel_max_height_m: float = 1.5   # ... and the camera at most this high
 
     def __post_init__(self) -> None:
         o = 'HorizontalParams'
+        for name in ('deck_jerk_psd_m2ps5', 'deck_accel_init_sigma_mps2',
+                     'deck_accel_max_sigma_mps2', 'deck_accel_max_height_m'):
+            chk.positive(f'{o}.{name}', getattr(self, name))
         if not isinstance(self.adapt_noise, bool):
             raise ValueError(f'{o}.adapt_noise must be a bool, got {self.adapt_noise!r}')
         chk.in_range(f'{o}.adapt_weight', self.adapt_weight, 0.0, 1.0)
@@ -351,6 +452,7 @@ class HorizontalTracker:
     def __init__(self, params: HorizontalParams | None = None) -> None:
         self.params = params if params is not None else HorizontalParams()
         self.kf = AxisPairKF()
+        self.deck_kf = DeckAccelKF()
         self.accel = AccelIntegrator(self.params.accel_history_s)
         self.rejected: dict[str, int] = {'nan': 0, 'out_of_order': 0, 'gated': 0}
         self.events: dict[str, int] = {'acquired': 0, 'lost': 0, 'restarts': 0,
@@ -368,6 +470,7 @@ class HorizontalTracker:
         self.t_last_accept: float | None = None
         self.visible = False
         self.last_nis = 0.0
+        self.height_m = math.inf              # the height of the last accepted detection
         self.rivals: list[_Rival] = []
         self.surface: float | None = None     # surface height seen from over the track
         self.t_over: float | None = None
@@ -396,6 +499,7 @@ class HorizontalTracker:
         if self.t_filter is None or not (math.isfinite(k) and k > 0.0):
             return
         self.kf.scale(k)
+        self.deck_kf.scale(k)
         # the rivals' offsets are measurements in the same scale: a rival not rescaled no
         # longer matches its own blob (a new, unvisited rival each time: endless probing)
         for rv in self.rivals:
@@ -417,8 +521,11 @@ class HorizontalTracker:
             self.hits = 0
 
     def _start(self, t_s: float, x: float, y: float, r: float) -> None:
-        v0 = self.params.init_vel_sigma_mps
+        p = self.params
+        v0 = p.init_vel_sigma_mps
         self.kf.reset(x, y, r, v0 * v0)
+        a0 = p.deck_accel_init_sigma_mps2
+        self.deck_kf.reset(x, y, r, v0 * v0, a0 * a0)
         self.t_filter = t_s
         self.t_last_accept = t_s
         self.mode = 'acquiring'
@@ -475,6 +582,8 @@ class HorizontalTracker:
         kf = self.kf
         dpx, dvx, dpy, dvy = self._control(self.t_filter, t_s)
         kf.predict(t_s - self.t_filter, self.params.accel_psd_m2ps3, dpx, dvx, dpy, dvy)
+        self.deck_kf.predict(t_s - self.t_filter, self.params.deck_jerk_psd_m2ps5, dpx, dvx,
+                             dpy, dvy)
         self.t_filter = t_s
         best_i, best_nis = -1, math.inf
         rejected = [rv for rv in self.rivals if rv.rejected] if self.rivals else None
@@ -504,10 +613,12 @@ class HorizontalTracker:
             nx, ny = best[0] - kf.px, best[1] - kf.py
             self.noise.update(0.5 * (nx * nx + ny * ny), 0.5 * (kf.ax + kf.ay), r0)
         kf.update(best[0], best[1], r)
+        self.deck_kf.update(best[0], best[1], r)
         if self.mode == 'tracking' and (len(good) > 1 or self.rivals):
             self._rivals(t_s, good, best_i, surface_m, spot_m, top_m)
         self.last_nis = best_nis
         self.t_last_accept = t_s
+        self.height_m = height_m
         self.visible = True
         if self.mode == 'acquiring':
             self.hits += 1
@@ -667,6 +778,7 @@ class HorizontalTracker:
         dx, dy = rv.dx, rv.dy
         kf.px += dx
         kf.py += dy
+        self.deck_kf.shift(dx, dy)
         old = _Rival(-dx, -dy, rv.t_seen)
         old.hits = max(rv.hits, self.params.rival_confirm_hits)
         old.surface = self.surface
@@ -677,6 +789,19 @@ class HorizontalTracker:
                 other.dx -= dx
                 other.dy -= dy
         self.rivals = [other for other in self.rivals if other is not rv] + [old]
+
+    def deck_accel(self, t_s: float) -> tuple[float, float] | None:
+        """The deck's acceleration (ENU) while tracked, unambiguous, known to
+        ``deck_accel_max_sigma_mps2`` and seen from at most ``deck_accel_max_height_m``; else
+        None. Higher up, the camera's attitude and timing errors, which scale with the
+        height, turn the vehicle's own tilting into apparent deck motion (decision 13e)."""
+        since = math.inf if self.t_last_accept is None else t_s - self.t_last_accept
+        p = self.params
+        if (self.mode != 'tracking' or since > p.lost_timeout_s or self.ambiguous
+                or self.height_m > p.deck_accel_max_height_m
+                or self.deck_kf.accel_sigma_mps2 > p.deck_accel_max_sigma_mps2):
+            return None
+        return self.deck_kf.accel_mps2
 
     def state(self, t_s: float) -> tuple[float, float, float, float, float, float, bool, float]:
         """(x, y, vx, vy, var_x, var_y, tracked, time_since_seen_s) predicted to t_s.

@@ -252,7 +252,7 @@ class EstimatorLoop(InputGuard):
             reason = 'clock_not_advancing'   # downstream rejects repeated or older t_s
         st: ApronState | None = None
         if not reason:
-            st = self.deck.fuse(self.estimator.state(now_s))
+            st = self.deck.fuse(self.estimator.state(now_s), self.estimator.deck_accel(now_s))
             if st.has_nan():  # defensive: the core never does this
                 reason = 'non_finite_output'
         if reason or st is None:

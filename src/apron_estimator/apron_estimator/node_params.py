@@ -102,6 +102,13 @@ ESTIMATOR_DESCRIPTIONS = {
                               '(covariance matching, >= the configured sigma)',
     'horizontal.adapt_weight': 'weight of one accepted detection in the learnt camera noise',
     'horizontal.adapt_max_scale': 'learnt camera variance at most this times sigma^2',
+    'horizontal.deck_jerk_psd_m2ps5': "q of the deck-acceleration filter (white jerk): the "
+                                      "deck's acceleration fed forward by the planner",
+    'horizontal.deck_accel_init_sigma_mps2': 'deck acceleration sigma at (re-)acquisition',
+    'horizontal.deck_accel_max_sigma_mps2': 'deck acceleration published once its sigma is '
+                                            'below this',
+    'horizontal.deck_accel_max_height_m': 'deck acceleration published only from at most '
+                                          'this high (m)',
     'beacon_signature': 'Pixy signature of the beacon (0 = any)',
     'attitude_history_s': 'attitude history kept for exposure-stamp look-ups',
     'max_attitude_gap_s': 'camera frame rejected without an attitude sample this close',

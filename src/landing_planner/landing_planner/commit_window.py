@@ -77,8 +77,12 @@ class DescentPlan:
     closing_speed_mps: float        # planned relative closing speed after the commit
     follow_lag_s: float = 0.25
     vehicle_vz_mps: float = 0.0     # the vehicle's world vertical speed now (ENU, up +)
-    vehicle_normal_x: float = 0.0   # the vehicle's normal (R e3) in the map, at contact
-    vehicle_normal_y: float = 0.0
+    vehicle_normal_x: float = 0.0   # the vehicle's normal (R e3) in the map, at contact:
+    vehicle_normal_y: float = 0.0   # this + normal_gain · the pad's normal then (TiltCoupling)
+    normal_gain_x: float = 0.0
+    normal_gain_y: float = 0.0
+    normal_sigma_x: float = 0.0     # σ of the vehicle's normal about that model
+    normal_sigma_y: float = 0.0
     feedforward: bool = False
     feedforward_lag_s: float = 0.1  # 1/Λ of the DOB sliding surface (14), Λ = 10.5 s⁻¹
     hold_world: bool = False
@@ -94,8 +98,11 @@ class DescentPlan:
                     and not math.isnan(self.follow_lag_s), f'{o}.follow_lag_s',
                     'must be >= 0 (inf allowed)', self.follow_lag_s)
         chk.non_negative(f'{o}.feedforward_lag_s', self.feedforward_lag_s)
-        for name in ('vehicle_vz_mps', 'vehicle_normal_x', 'vehicle_normal_y'):
+        for name in ('vehicle_vz_mps', 'vehicle_normal_x', 'vehicle_normal_y',
+                     'normal_gain_x', 'normal_gain_y'):
             chk.finite(f'{o}.{name}', getattr(self, name))
+        for name in ('normal_sigma_x', 'normal_sigma_y'):
+            chk.non_negative(f'{o}.{name}', getattr(self, name))
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,8 +122,10 @@ class CommitWindow:
     now_contact_s: float = math.nan         # a commit now, whether it is good or not:
     now_speed_mps: float = math.nan         # its contact time, predicted speed and bound
     now_speed_hi_mps: float = math.nan
-    best_commit_s: float = math.nan         # the scanned commit with the lowest speed bound
-    best_speed_hi_mps: float = math.nan     # (a fallback for a planner that cannot wait)
+    best_commit_s: float = math.nan         # the scanned commit nearest to the limits: the
+    best_speed_hi_mps: float = math.nan     # lowest risk (a fallback for a planner that
+    best_tilt_hi_rad: float = math.nan      # cannot wait), its speed and tilt bounds
+    best_risk: float = math.nan             # max(speed bound / limit, tilt bound / limit)
 
 
 def _z(p: float) -> float:
@@ -218,9 +227,8 @@ def find_window(t_now_s: float, deck: DeckSnapshot, plan: DescentPlan,
     run_open = -1.0
     run_first: CommitWindow | None = None
     run_last = -1.0
-    vx, vy = plan.vehicle_normal_x, plan.vehicle_normal_y
     now = (math.nan, math.nan, math.nan)
-    best_hi, best_t = math.inf, math.nan
+    best_risk, best_t, best_hi, best_tilt = math.inf, math.nan, math.nan, math.nan
     for mc in range(0, m_end + 1, step):
         verdict = _assess(mc, plan.height_m, c, dt, rel, sig, gint, wint, cov, n1, z_v,
                           settle_m, plan.hold_world, p)
@@ -229,12 +237,14 @@ def find_window(t_now_s: float, deck: DeckSnapshot, plan: DescentPlan,
         ok, t_contact_m, lo_m, hi_m, speed, speed_hi = verdict
         if mc == 0:
             now = (t_now_s + t_contact_m * dt, speed, speed_hi)
-        if speed_hi < best_hi:
-            best_hi, best_t = speed_hi, t_now_s + mc * dt
         tilt_hi = math.nan
-        if ok and tilt:
-            tilt_hi = _tilt_bound(deck, t_now_s, lo_m, hi_m, dt, vx, vy, z_t)
-            ok = tilt_hi <= p.max_tilt_rad
+        if tilt and math.isfinite(speed_hi):
+            tilt_hi = _tilt_bound(deck, t_now_s, lo_m, hi_m, dt, plan, z_t)
+            if ok:
+                ok = tilt_hi <= p.max_tilt_rad
+        risk = _risk(speed, speed_hi, tilt_hi, p)
+        if risk < best_risk:
+            best_risk, best_t, best_hi, best_tilt = risk, t_now_s + mc * dt, speed_hi, tilt_hi
         t_c = t_now_s + mc * dt
         if ok:
             if run_first is None:
@@ -253,11 +263,28 @@ def find_window(t_now_s: float, deck: DeckSnapshot, plan: DescentPlan,
     if best is None:
         return CommitWindow(False, 'no_window', now_contact_s=now[0], now_speed_mps=now[1],
                             now_speed_hi_mps=now[2], best_commit_s=best_t,
-                            best_speed_hi_mps=best_hi if math.isfinite(best_hi) else math.nan)
+                            best_speed_hi_mps=best_hi, best_tilt_hi_rad=best_tilt,
+                            best_risk=best_risk if math.isfinite(best_risk) else math.nan)
     return CommitWindow(True, 'ok', best.open_s <= t_now_s + 0.5 * p.commit_step_s,
                         best.open_s, run_last, best.contact_s, best.normal_speed_mps,
                         best.normal_speed_hi_mps, best.tilt_hi_rad, now[0], now[1], now[2],
-                        best_t, best_hi)
+                        best_t, best_hi, best_tilt,
+                        best_risk if math.isfinite(best_risk) else math.nan)
+
+
+def _risk(speed: float, speed_hi: float, tilt_hi: float, p: CommitParams) -> float:
+    """How far a commit is from the limits: the larger of its speed and tilt bounds, each
+    over its limit (≤ 1: inside them; the tilt counts only when predicted). A commit whose
+    contact is not a closing one (predicted speed ≤ 0) or lies past the tilt horizon is not
+    offered: inf."""
+    if not (math.isfinite(speed_hi) and speed > 0.0):
+        return math.inf
+    r = speed_hi / p.max_normal_speed_mps
+    if math.isfinite(tilt_hi):
+        r = max(r, tilt_hi / p.max_tilt_rad)
+    elif not math.isnan(tilt_hi):
+        return math.inf             # past the tilt horizon
+    return r
 
 
 def _assess(mc: int, height_m: float, c: float, dt: float, rel: list[float],
@@ -303,17 +330,22 @@ def _assess(mc: int, height_m: float, c: float, dt: float, rel: list[float],
 
 
 def _tilt_bound(deck: DeckSnapshot, t0_s: float, lo_m: float, hi_m: float, dt: float,
-                vx: float, vy: float, z: float) -> float:
-    """Largest bound of |n_pad − n_vehicle| over the span (inf past the tilt horizon)."""
+                plan: DescentPlan, z: float) -> float:
+    """Largest bound of |n_pad − n_vehicle| over the span (inf past the tilt horizon), with
+    n_vehicle = vehicle_normal + normal_gain · n_pad per axis (σ: the pad's prediction's,
+    scaled by |1 − gain|, and the model's, in quadrature)."""
     worst = 0.0
     m = lo_m
+    vx, vy = plan.vehicle_normal_x, plan.vehicle_normal_y
+    gx, gy = 1.0 - plan.normal_gain_x, 1.0 - plan.normal_gain_y
+    sx2, sy2 = plan.normal_sigma_x ** 2, plan.normal_sigma_y ** 2
     while True:
         t = t0_s + m * dt
         fx, fy = deck.tilt_x.at(t), deck.tilt_y.at(t)
         if not (fx.valid and fy.valid):
             return math.inf
-        bx = abs(fx.value - vx) + z * fx.sigma_value
-        by = abs(fy.value - vy) + z * fy.sigma_value
+        bx = abs(gx * fx.value - vx) + z * math.sqrt((gx * fx.sigma_value) ** 2 + sx2)
+        by = abs(gy * fy.value - vy) + z * math.sqrt((gy * fy.sigma_value) ** 2 + sy2)
         worst = max(worst, math.asin(min(1.0, math.hypot(bx, by))))
         if m >= hi_m:
             return worst

@@ -66,9 +66,10 @@ class ChannelParams:
 
 def tilt_channel_params() -> ChannelParams:
     """Pad-normal components from ship telemetry (1-10 Hz, delayed): a coarser grid with the
-    same 8 s memory (ship roll periods 4-10 s, FACTS.md), gaps up to 2.5 s bridged."""
+    same 8 s memory (ship roll periods 4-10 s, FACTS.md), gaps up to 2.5 s bridged; ready
+    after ~19 s of telemetry (planner README, "Tilt at contact")."""
     return ChannelParams(model_dt_s=0.5, ar_order=16, forgetting=0.99, max_gap_s=2.5,
-                         gate_floor=0.1, prior_sigma=0.3, min_calibration=30,
+                         gate_floor=0.1, prior_sigma=0.3, min_calibration=16,
                          warmup_updates=16)
 
 
@@ -607,3 +608,67 @@ def pad_normal_xy(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[fl
     """(n_x, n_y): the pad frame's z axis in the map, R e3 of :func:`rot_body_to_world`."""
     r = rot_body_to_world(roll_rad, pitch_rad, yaw_rad)
     return r[0][2], r[1][2]
+
+
+class TiltCoupling:
+    """How the vehicle's tilt follows the deck's, learnt online: per map axis
+    n_vehicle ≈ trim + K n_pad (n: the horizontal part of R e3, :func:`pad_normal_xy`).
+
+    A vehicle holding station over a rolling pad tilts with the pad's sway, in phase with the
+    roll (a pad h above the roll axis sways with a = h ω² φ: K ≈ −h ω²/g), and with a trim
+    against the wind; the relative tilt at contact is then (1 − K) n_pad − trim, smallest
+    near the level deck, not at the vehicle's tilt of now (planner README, "Tilt at contact").
+    Exponential moments with time constant ``tau_s``; :meth:`model` is None until
+    ``min_time_s`` of samples and while the pad's tilt varies by less than ``min_sigma``.
+    """
+
+    def __init__(self, tau_s: float = 10.0, min_time_s: float = 5.0,
+                 min_sigma: float = 0.005) -> None:
+        chk.positive('TiltCoupling.tau_s', tau_s)
+        chk.non_negative('TiltCoupling.min_time_s', min_time_s)
+        chk.positive('TiltCoupling.min_sigma', min_sigma)
+        self.tau_s, self.min_time_s, self.min_sigma = tau_s, min_time_s, min_sigma
+        self.reset()
+
+    def reset(self) -> None:
+        self._t0 = math.nan
+        self._t = math.nan
+        # per axis: E[d], E[v], E[d²], E[d v], E[v²]
+        self._m = [[0.0] * 5, [0.0] * 5]
+
+    def on_sample(self, t_s: float, pad_nx: float, pad_ny: float, vehicle_nx: float,
+                  vehicle_ny: float) -> bool:
+        """One pair of normals at ``t_s``; False (ignored) when not finite or not newer."""
+        if not (math.isfinite(t_s + pad_nx + pad_ny + vehicle_nx + vehicle_ny)):
+            return False
+        if math.isnan(self._t):
+            self._t0 = self._t = t_s
+            for m, d, v in zip(self._m, (pad_nx, pad_ny), (vehicle_nx, vehicle_ny),
+                               strict=True):
+                m[:] = [d, v, d * d, d * v, v * v]
+            return True
+        if t_s <= self._t:
+            return False
+        a = 1.0 - math.exp(-(t_s - self._t) / self.tau_s)
+        self._t = t_s
+        for m, d, v in zip(self._m, (pad_nx, pad_ny), (vehicle_nx, vehicle_ny), strict=True):
+            for i, x in enumerate((d, v, d * d, d * v, v * v)):
+                m[i] += a * (x - m[i])
+        return True
+
+    def model(self) -> tuple[tuple[float, float], tuple[float, float],
+                             tuple[float, float]] | None:
+        """((K_x, K_y), (trim_x, trim_y), (σ_x, σ_y) of the residual), or None."""
+        if math.isnan(self._t) or self._t - self._t0 < self.min_time_s:
+            return None
+        gains, trims, sig = [], [], []
+        for md, mv, dd, dv, vv in self._m:
+            var_d = dd - md * md
+            if var_d < self.min_sigma * self.min_sigma:
+                return None
+            cov = dv - md * mv
+            k = max(-3.0, min(1.0, cov / var_d))
+            gains.append(k)
+            trims.append(mv - k * md)
+            sig.append(math.sqrt(max(0.0, vv - mv * mv - 2.0 * k * cov + k * k * var_d)))
+        return (gains[0], gains[1]), (trims[0], trims[1]), (sig[0], sig[1])

@@ -36,7 +36,9 @@ class DeckTrackParams:
     velocity_window_s: float = 1.0    # ... or the displacement of the fixes over this
     displacement_velocity: bool = False   # predict with the displacement (see update)
     max_prediction_s: float = 60.0    # a prediction older than this is no track
-    accel_horizon_s: float = 1.0      # the acceleration is used this long after a fix
+    accel_horizon_s: float = 1.0      # a telemetry fix's acceleration is used this long
+    #                                   after it (a beacon fix's only at the fix: planner
+    #                                   README, "Tilt at contact", the deck acceleration)
     speed_window_s: float = 3.0       # averaging time of the RMS speed (rms_speed_mps)
 
     def __post_init__(self) -> None:
@@ -78,8 +80,8 @@ def _ok(*values: float) -> bool:
 class DeckTrack:
     """The pad from the beacon, else telemetry, else a prediction, else the landing area."""
 
-    __slots__ = ('_acc', '_fix_s', '_heading', '_hist', '_ms', '_pos', '_src', '_vel',
-                 '_yaw_rate', 'area_m', 'fixes', 'max_speed_mps', 'params')
+    __slots__ = ('_acc', '_acc_horizon_s', '_fix_s', '_heading', '_hist', '_ms', '_pos',
+                 '_src', '_vel', '_yaw_rate', 'area_m', 'fixes', 'max_speed_mps', 'params')
 
     def __init__(self, area_m: tuple[float, float],
                  params: DeckTrackParams | None = None) -> None:
@@ -94,6 +96,7 @@ class DeckTrack:
         self._pos = self.area_m
         self._vel = (0.0, 0.0)
         self._acc = (0.0, 0.0)
+        self._acc_horizon_s = 0.0
         self._heading: float | None = None
         self._yaw_rate = 0.0
         self._fix_s = -math.inf
@@ -154,6 +157,12 @@ class DeckTrack:
             # 5.5 m/s from them, 3.7 from the filtered velocity, for 2.5 m/s)
             vel = ((pos[0] - hist[0][1]) / span, (pos[1] - hist[0][2]) / span)
         self._pos, self._vel, self._acc = pos, vel, acc
+        # the ship's own (INS/GNSS) acceleration is carried on; the beacon filter's is a
+        # short-horizon estimate of a sway (σ 0.15-0.6 m/s²): carried for a second it became
+        # a lasting velocity error, and a static deck lost behind an occlusion was searched
+        # for metres away (fault_beacon_occlusion seed 100002)
+        self._acc_horizon_s = (self.params.accel_horizon_s if src == DECK_SOURCE_TELEMETRY
+                               else 0.0)
         self.max_speed_mps = max(self.max_speed_mps, math.hypot(*vel))
         if apron.deck_attitude_valid and _ok(apron.deck_rpy_rad[2], apron.deck_yaw_rate_radps):
             self._heading = float(apron.deck_rpy_rad[2])
@@ -165,8 +174,8 @@ class DeckTrack:
 
     def at(self, t_s: float) -> TrackPoint:
         """The pad at ``t_s``: the last fix moved on at constant velocity (and, for
-        ``accel_horizon_s``, acceleration); the landing area at rest before any fix or once
-        the prediction is older than ``max_prediction_s``."""
+        ``accel_horizon_s`` after a telemetry fix, acceleration); the landing area at rest
+        before any fix or once the prediction is older than ``max_prediction_s``."""
         if not self.has_fix:
             return TrackPoint(self.area_m, (0.0, 0.0), (0.0, 0.0), None, DECK_SOURCE_NONE,
                               math.inf)
@@ -174,12 +183,13 @@ class DeckTrack:
         if age > self.params.max_prediction_s:
             self.reset()
             return self.at(t_s)
-        ta = min(age, self.params.accel_horizon_s)
+        horizon = self._acc_horizon_s
+        ta = min(age, horizon)
         ax, ay = self._acc
         vx, vy = self._vel
         x = self._pos[0] + vx * age + 0.5 * ax * ta * ta + ax * ta * (age - ta)
         y = self._pos[1] + vy * age + 0.5 * ay * ta * ta + ay * ta * (age - ta)
-        acc = self._acc if age <= self.params.accel_horizon_s else (0.0, 0.0)
+        acc = self._acc if age <= horizon else (0.0, 0.0)
         heading = None
         if self._heading is not None:
             h = self._heading + self._yaw_rate * age

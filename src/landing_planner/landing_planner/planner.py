@@ -19,7 +19,6 @@ from typing import TYPE_CHECKING
 from deckland_common.contract import (
     DECK_SOURCE_NONE,
     DECK_SOURCE_PREDICTION,
-    DECK_SOURCE_TELEMETRY,
     VERTICAL_RELATIVE,
     VERTICAL_WORLD_RATE,
     Mode,
@@ -39,6 +38,7 @@ from landing_planner.deck_predictor import (
     ChannelParams,
     DeckPredictor,
     DeckPredictorParams,
+    TiltCoupling,
     pad_normal_xy,
     tilt_channel_params,
 )
@@ -356,6 +356,7 @@ class LandingPlanner:
                               min_calibration=p.predictor_min_calibration)
         self.predictor = DeckPredictor(DeckPredictorParams(heave=heave,
                                                            tilt=tilt_channel_params()))
+        self.tilt_coupling = TiltCoupling()
         self._commit = CommitParams()
         self._monitor = PredictionMonitor(MonitorParams())
         self.go_arounds = 0
@@ -420,7 +421,7 @@ class LandingPlanner:
         vert_ok, closing = self._read_vertical(apron)
         self.track_source = self._track.update(t_s, apron, target_ok)
         self._tp = self._track.at(t_s)
-        self._feed_predictor(t_s, apron, vert_ok)
+        self._feed_predictor(t_s, apron, vert_ok, vehicle if veh_ok else None)
         self._accel_ff = (0.0, 0.0)
 
         if self._pos is None:   # nothing known about the vehicle yet
@@ -548,16 +549,24 @@ class LandingPlanner:
         q = self._track.at(t_s).position_m
         return ap[0] - q[0], ap[1] - q[1]
 
-    def _feed_predictor(self, t_s: float, apron: ApronState, vert_ok: bool) -> None:
-        """The deck's vertical motion (and tilt, with telemetry) into the predictor."""
+    def _feed_predictor(self, t_s: float, apron: ApronState, vert_ok: bool,
+                        vehicle: VehicleState | None) -> None:
+        """The deck's vertical motion (and tilt, with telemetry) into the predictor. The
+        tilt comes from the ship's attitude whatever the position's source: the beacon fixes
+        where the pad is, not how it leans. Holding over the pad (DESCEND, FINAL), the
+        vehicle's tilt against the pad's teaches the tilt coupling (decision 17)."""
         v = apron.vertical
         if vert_ok:
             self.predictor.on_surface(t_s, v.surface_height_m, v.surface_epoch,
                                       v.last_rebase_m if _finite(v.last_rebase_m) else 0.0)
-        if apron.deck_attitude_valid and apron.source == DECK_SOURCE_TELEMETRY:
+        if apron.deck_attitude_valid:
             r = apron.deck_rpy_rad
             if _finite(r[0], r[1], r[2]):
-                self.predictor.on_tilt(t_s, *pad_normal_xy(r[0], r[1], r[2]))
+                n = pad_normal_xy(r[0], r[1], r[2])
+                self.predictor.on_tilt(t_s, *n)
+                if vehicle is not None and self.mode in (Mode.DESCEND, Mode.FINAL):
+                    self.tilt_coupling.on_sample(t_s, n[0], n[1], *pad_normal_xy(
+                        vehicle.roll_rad, vehicle.pitch_rad, vehicle.yaw_rad))
 
     def _deck_yaw_target(self) -> float | None:
         """The heading to hold over the deck: its heading + ``deck_yaw_offset_rad``."""
@@ -719,19 +728,27 @@ class LandingPlanner:
             self._commit_now(t, f'commit window open: contact in {w.now_contact_s - t:.1f} s '
                              f'at <= {w.now_speed_hi_mps:.2f} m/s (Step 10)', True, True)
         elif late and w.best_commit_s <= t + 0.5 * p.commit_check_s:
+            tilt = ('' if not math.isfinite(w.best_tilt_hi_rad) else
+                    f', tilt <= {math.degrees(w.best_tilt_hi_rad):.1f}°')
             self._commit_now(t, f'no window within {p.commit_timeout_s:.1f} s: the best '
-                             f'commit offered (contact at <= {w.best_speed_hi_mps:.2f} m/s, '
-                             'Step 10)', True, False)
+                             f'commit offered (contact at <= {w.best_speed_hi_mps:.2f} m/s'
+                             f'{tilt}, Step 10)', True, False)
 
     def _window(self, t_s: float, v: VehicleState, h: float) -> CommitWindow:
         """The commit window for the final descent flown from height ``h`` now."""
         p = self.params
         nx, ny = pad_normal_xy(v.roll_rad, v.pitch_rad, v.yaw_rad)
+        gain, sig = (0.0, 0.0), (0.0, 0.0)
+        model = self.tilt_coupling.model()
+        if model is not None:       # the vehicle's tilt at contact follows the pad's
+            gain, (nx, ny), sig = model
         plan = DescentPlan(height_m=max(h - p.gear_height_m, 0.01),
                            closing_speed_mps=self._touchdown().plan_speed_mps,
                            follow_lag_s=p.commit_follow_lag_s,
                            vehicle_vz_mps=float(v.velocity_mps[2]),
-                           vehicle_normal_x=nx, vehicle_normal_y=ny)
+                           vehicle_normal_x=nx, vehicle_normal_y=ny,
+                           normal_gain_x=gain[0], normal_gain_y=gain[1],
+                           normal_sigma_x=sig[0], normal_sigma_y=sig[1])
         return find_window(t_s, self.predictor.snapshot(), plan, self._commit)
 
     def _recheck_commit(self, tk: _Tick) -> None:
