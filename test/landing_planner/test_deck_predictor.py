@@ -443,33 +443,6 @@ def test_sea_state_bounds_hold_on_the_true_deck(sea_rows):
     assert held / total >= 0.95                              # 0.971
 
 
-@pytest.mark.slow
-def test_tilt_limits_the_window():
-    """A deck rolling 8° (period 8 s) under a level vehicle: with a 5° limit the finder
-    commits only where the predicted tilt stays low through contact and settling."""
-    heave = deck.SineHeave(0.05, 8.0, 0.0).state
-    rows = synthetic(heave, 120.0)
-    pred = DeckPredictor()
-    good = bad = 0
-    t_tilt = 0.0
-    for i, row in enumerate(rows):
-        t = row[0]
-        bench.feed(pred, row)
-        if t >= t_tilt:
-            roll = math.radians(8.0) * math.sin(2 * math.pi * t / 8.0)
-            pred.on_tilt(t, *pad_normal_xy(roll, 0.0, 0.0))
-            t_tilt += 0.1
-        if pred.ready and pred.tilt_ready and i % 25 == 0 and i < len(rows) - 600:
-            w = find_window(t, pred.snapshot(), _follow_plan(0.0), CommitParams())
-            if w.commit_now:
-                for tc in (w.contact_s, w.contact_s + 0.3):
-                    roll = math.radians(8.0) * math.sin(2 * math.pi * tc / 8.0)
-                    good += abs(roll) <= math.radians(5.0)
-                    bad += abs(roll) > math.radians(5.0)
-                assert w.tilt_hi_rad <= math.radians(5.0)
-    assert good > 20 and bad == 0
-
-
 def _rolling_deck_window(plan, params=None, seconds=120.0):
     """Commits-now over a deck rolling 8° (8 s period, heaving 5 cm): [(window, roll at
     contact, roll 0.3 s later)]."""
@@ -490,6 +463,20 @@ def _rolling_deck_window(plan, params=None, seconds=120.0):
                      for tc in (w.contact_s, w.contact_s + 0.3)]
             out.append((w, *rolls))
     return out
+
+
+@pytest.mark.slow
+def test_tilt_limits_the_window():
+    """A deck rolling 8° (period 8 s) under a level vehicle: with a 5° limit the finder
+    commits only where the predicted tilt stays low through contact and settling."""
+    good = bad = 0
+    for w, *rolls in _rolling_deck_window(_follow_plan(0.0)):
+        if w.commit_now:
+            for roll in rolls:
+                good += abs(roll) <= math.radians(5.0)
+                bad += abs(roll) > math.radians(5.0)
+            assert w.tilt_hi_rad <= math.radians(5.0)
+    assert good > 20 and bad == 0
 
 
 def test_a_vehicle_that_tilts_with_the_pad_moves_the_tilt_window():
