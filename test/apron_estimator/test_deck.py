@@ -223,3 +223,14 @@ def test_bad_telemetry_is_refused_and_the_loop_counts_it():
     s = f.fuse(beacon_state(1.2, False))
     assert s.source == 'telemetry' and s.apron_position_m[0] == pytest.approx(6.2)
     assert f.fuse(beacon_state(2.0, False)).source == 'prediction'
+
+
+def test_a_new_beacon_track_starts_from_the_telemetry_velocity_while_it_is_fresh():
+    """The loop hands the estimator the ship's velocity as the prior of a new track (README
+    D7); without fresh telemetry the deck is assumed at rest."""
+    loop = EstimatorLoop(ApronEstimator())
+    assert loop.on_deck_odom(10.0, 10.0, (5.0, 0.0, 0.0), (2.0, 0.5, 0.0))
+    loop.on_camera(10.2, 10.1, [])
+    assert loop.estimator.deck_velocity_prior_mps == pytest.approx((2.0, 0.5))
+    loop.on_camera(12.0, 12.0, [])      # the telemetry is 2 s old: timed out (1.5 s)
+    assert loop.estimator.deck_velocity_prior_mps == (0.0, 0.0)

@@ -371,3 +371,36 @@ def test_a_deck_level_drifted_by_the_heave_is_re_anchored_over_the_beacon():
     assert near
     for e, tr in near:
         assert e[0] == pytest.approx(tr[0], abs=0.01)
+
+
+def _fly_past_a_beacon(est, deck_v=(0.0, 0.0), frames=4):
+    """A level vehicle at 1 m/s east, 2 m over a deck moving at ``deck_v``; the beacon comes
+    into view: returns the apron state right after the track is acquired."""
+    t = 0.0
+    for k in range(frames):
+        t = 0.02 * k
+        vehicle = (1.0 * t, 0.0, 2.0)
+        beacon = (0.5 + deck_v[0] * t, deck_v[1] * t, 0.0)
+        est.on_attitude(t, 0.0, 0.0, 0.0)
+        est.on_accel(t, (0.0, 0.0, 0.0))
+        est.on_lidar(t, 2.0)
+        est.on_local_position(t, vehicle, (1.0, 0.0, 0.0))
+        pix = project(tuple(b - v for b, v in zip(beacon, vehicle, strict=True)), 0.0, 0.0, 0.0)
+        est.on_camera(t, [PixyBlock(1, pix[0], pix[1], 5, 5)])
+    s = est.state(t)
+    assert s.tracked
+    return s
+
+
+def test_a_new_track_starts_with_the_deck_at_rest_not_moving_with_the_vehicle():
+    """README D7: the relative velocity a track starts from is the deck's prior (at rest, or
+    the ship's telemetry) minus the vehicle's; from 0 the deck read as moving with the
+    vehicle (`sea_state_4` seed 100036: 0.8 m/s of phantom deck speed in the first second)."""
+    s = _fly_past_a_beacon(ApronEstimator())
+    assert math.hypot(*s.apron_velocity_mps) < 0.15
+    assert s.rel_velocity_mps[0] == pytest.approx(-1.0, abs=0.15)
+    # a ship's telemetry velocity is the prior when the owner (the loop) has one
+    est = ApronEstimator()
+    est.deck_velocity_prior_mps = (2.0, 0.5)
+    s = _fly_past_a_beacon(est, deck_v=(2.0, 0.5))
+    assert s.apron_velocity_mps == pytest.approx((2.0, 0.5), abs=0.15)

@@ -307,3 +307,24 @@ def test_a_beacon_far_outside_the_view_is_never_drawn():
                                                    0.8)
         drawn += len(w._render_frame(10.0, 10.02))
     assert drawn == 0
+
+
+def test_the_autopilot_holds_the_commanded_heading_on_its_estimate():
+    """docs/world/sensors.md: a heading setpoint is held on the autopilot's estimate (what
+    ATTITUDE reports), so the true heading is off by the estimate's heading error; before,
+    the true heading was held and the reported yaw stayed off by the error for good."""
+    sc = calm()
+    sc = dataclasses.replace(sc, sensors=dataclasses.replace(
+        sc.sensors, attitude=dataclasses.replace(sc.sensors.attitude, yaw_bias_std_rad=0.1)))
+    w = World(sc, seed=3)
+    err = w.sensor_suite.attitude.heading_error_rad
+    assert abs(err) > 0.05                       # a heading error worth measuring
+    p, v = w.params, w.vehicle
+    place(w, 0.0, 0.0, 2.0)
+    for k in range(round(6.0 / DT)):
+        if k % 4 == 0:
+            w.set_command(0.0, 0.0, 0.5, p.mass_kg * (p.gravity_mps2 - 3.0 * v.vz) / v.gamma)
+        w.step(DT)
+    reported = w.read_attitude()[2]
+    assert reported == pytest.approx(0.5, abs=0.01)
+    assert v.yaw == pytest.approx(0.5 - w.sensor_suite.attitude.heading_error_rad, abs=0.01)

@@ -29,3 +29,13 @@ def test_a_ship_underway_never_ends_in_the_sea(seed):
     r = run_landing(load_scenario('ship_ss3'), seed, RunConfig(controller='dob'))
     assert not r.crash and r.contact_kind != 'water', (r.outcome, r.reason)
     assert r.outcome in ('deck', 'failed', 'hold')
+
+
+def test_a_beacon_first_seen_beside_a_raised_heaving_deck_is_not_chased_off():
+    # sea_state_4 seed 100036 (stop 24): acquired 1.7 m off a deck at rest, 1 m above the
+    # ground, the young track read 0.8 m/s of deck motion (the estimator's start "moving with
+    # the vehicle" and the camera's scale error beside the deck); ALIGN chased it, lost the
+    # beacon and searched along the phantom's track for 150 s. Now it lands.
+    r = run_landing(load_scenario('sea_state_4'), 100036, RunConfig(controller='dob'))
+    assert r.outcome == 'deck' and r.landed_on_deck, r.reason
+    assert r.time_to_land_s < 60.0

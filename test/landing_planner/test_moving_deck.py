@@ -72,7 +72,7 @@ def test_only_a_telemetry_fix_carries_its_acceleration_into_the_prediction():
     (a sway's, or noise on a deck at rest) only serves at the fix: carried, 0.3 m/s² became
     0.3 m/s of drift and a static deck lost behind an occlusion was searched for metres away."""
     for src, accepted in ((DECK_SOURCE_TELEMETRY, False), (DECK_SOURCE_BEACON, True)):
-        tr = DeckTrack((0.0, 0.0), DeckTrackParams(accel_horizon_s=1.0))
+        tr = DeckTrack((0.0, 0.0), DeckTrackParams(accel_horizon_s=1.0, confirm_s=0.0))
         a = dataclasses.replace(make_apron(0.0, (0.0, 0.0), (2.0, 0.0)), source=src,
                                 apron_position_m=(2.0, 0.0), apron_velocity_mps=(0.0, 0.0),
                                 apron_accel_mps2=(0.3, 0.0))
@@ -85,6 +85,44 @@ def test_only_a_telemetry_fix_carries_its_acceleration_into_the_prediction():
         else:
             assert q.velocity_mps == (0.0, 0.0) and q.position_m == (2.0, 0.0)
         assert q.accel_mps2 == (0.0, 0.0)
+
+
+def test_a_young_beacon_track_is_followed_at_rest_until_its_velocity_is_confirmed():
+    """A beacon run's velocity is predicted with only after ``confirm_s`` without a gap: an
+    acquisition transient (or the scale error beside a raised deck) reads as deck motion of
+    the vehicle's own speed (`sea_state_4` seed 100036 searched along 0.8 m/s of it)."""
+    prm = DeckTrackParams(confirm_s=2.0, velocity_window_s=1.0)
+
+    def beacon(t, v=(0.8, 0.0)):
+        return dataclasses.replace(make_apron(t, (0.0, 0.0), (v[0] * t, 0.0), beacon_v=v),
+                                   source=DECK_SOURCE_BEACON)
+
+    tr = DeckTrack((0.0, 0.0), prm)
+    t = 0.0
+    while t < 1.9:
+        tr.update(t, beacon(t), accepted=True)
+        t = round(t + DT, 9)
+    q = tr.at(t + 3.0)                  # lost now: the last fix, at rest
+    assert q.velocity_mps == (0.0, 0.0) and q.position_m[0] == pytest.approx(0.8 * (t - DT))
+    assert not q.moving and tr.rms_speed_mps == 0.0
+    # ... but the evidence that it may move is kept for the safety decisions (no "land where
+    # it is" beside a deck that may have moved on)
+    assert tr.max_speed_mps == pytest.approx(0.8, abs=0.05)
+    while t < 2.5:
+        tr.update(t, beacon(t), accepted=True)
+        t = round(t + DT, 9)
+    assert tr.at(t).velocity_mps[0] == pytest.approx(0.8, abs=0.01) and tr.at(t).moving
+    # a gap longer than velocity_window_s: a new run, at rest again until confirmed
+    t += 1.5
+    tr.update(t, beacon(t), accepted=True)
+    assert tr.at(t).velocity_mps == (0.0, 0.0)
+    # telemetry is believed at once, and a beacon run that continues it
+    tr = DeckTrack((0.0, 0.0), prm)
+    assert tr.update(0.0, telemetry(0.0, (0.0, 0.0), (0.8, 0.0), (0.0, 0.0)), False) == \
+        DECK_SOURCE_TELEMETRY
+    assert tr.at(0.0).velocity_mps == (0.8, 0.0)
+    assert tr.update(0.01, beacon(0.01), accepted=True) == DECK_SOURCE_BEACON
+    assert tr.at(0.01).velocity_mps[0] == pytest.approx(0.8)
 
 
 def test_track_velocity_is_filtered_so_one_noisy_sample_does_not_send_it_off():
@@ -217,8 +255,9 @@ def test_search_is_flown_around_the_predicted_track_of_a_lost_deck():
     pl.start_landing(0.0)
     v = (0.6, -0.2)
     t, xy = 0.0, (0.0, 0.0)
-    # tracked for 2 s (the beacon, moving), then never seen again
-    while t < 2.0:
+    # tracked for 3 s (the beacon, moving: its velocity believed after confirm_s = 2 s),
+    # then never seen again
+    while t < 3.0:
         deck = (v[0] * t, v[1] * t)
         out = pl.step(t, DT, make_vehicle(t, xy), make_apron(t, xy, deck, beacon_v=v))
         xy = out.setpoint_m
@@ -260,7 +299,35 @@ def test_after_the_searches_a_moving_deck_is_not_landed_beside_but_held_over():
     assert f.out.mode is Mode.HOLD and math.dist(f.xy, (dx, dy)) < 0.05
     assert f.out.velocity_ff_mps == pytest.approx((1.0, 0.0), abs=1e-6)
     assert f.out.z_d_m >= p.approach_height_m - 1e-6        # never descends
+    # the beacon comes back into view: the landing resumes (ALIGN); lost again, with the
+    # searches spent, it holds over the track again, not lands beside it
+    for _ in range(10):
+        f.step(seen_radius=1.0)
+    assert f.out.mode is Mode.ALIGN and 're-acquired while holding' in f.p.reason
+    while f.step().mode is not Mode.HOLD:
+        assert f.out.mode is Mode.ALIGN and f.t < 60.0
+    assert 'target lost' in f.p.reason and 'Step 14 refused' in f.p.reason
 
+
+
+@pytest.mark.parametrize('seen_s, expected', [(1.0, Mode.HOLD), (4.0, Mode.FALLBACK)])
+def test_a_deck_seen_too_briefly_to_know_it_is_at_rest_is_not_landed_beside(seen_s,
+                                                                               expected):
+    """Step 14 "land where it is" only beside a deck known to be at rest: its beacon tracked
+    past ``deck_confirm_s`` (`paper_translating` seed 100227: 1 s of a 0.5 m/s deck, then a
+    landing on the ground beside it)."""
+    pl = LandingPlanner(PlannerParams(landing_area_m=(0.0, 0.0), max_searches=0))
+    pl.start_landing(0.0)
+    t, xy = 0.0, (0.0, 0.0)
+    while pl.mode not in (Mode.HOLD, Mode.FALLBACK):
+        deck = (0.05, 0.0) if t < seen_s else None     # at rest, below; then never again
+        out = pl.step(t, DT, make_vehicle(t, xy), make_apron(t, xy, deck))
+        xy = out.setpoint_m
+        t = round(t + DT, 9)
+        assert t < 30.0
+    assert pl.mode is expected
+    if expected is Mode.HOLD:
+        assert 'seen too briefly' in pl.reason and 'Step 14 refused' in pl.reason
 
 # --- yaw alignment -----------------------------------------------------------------------------
 

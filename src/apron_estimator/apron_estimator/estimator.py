@@ -80,6 +80,9 @@ class ApronEstimator:
         self._delta_m = 0.0     # the camera height's level correction used last (_camera_delta)
         self._top_level_m = 0.0   # the deck's surface level (_camera_delta)
         self._low_level_m = 0.0   # the lowest surface level seen
+        #: the deck's velocity a new track assumes (ENU): the owner sets the ship's
+        #: telemetry when it has it; (0, 0) = at rest (README, D7)
+        self.deck_velocity_prior_mps: tuple[float, float] = (0.0, 0.0)
 
     @property
     def rejected(self) -> dict[str, int]:
@@ -252,6 +255,7 @@ class ApronEstimator:
         if vf.initialised and self._recent_lidar(t_s):
             surface = vf.surface_level_m
         hz = self.horizontal
+        hz.prior_velocity_mps = self._relative_velocity_prior()   # used if a track starts
         top = None if self.params.camera.paper_exact else self._top_level_m
         if hz.update(t_s, candidates, height, surface, self._lidar_spot, top) and (
                 surface is not None and hz.mode == 'tracking'):
@@ -262,6 +266,17 @@ class ApronEstimator:
             if ((x - sx) * (x - sx) + (y - sy) * (y - sy) <= r * r
                     and surface - self._low_level_m > self._top_level_m - surface):
                 self._top_level_m = surface
+
+    def _relative_velocity_prior(self) -> tuple[float, float]:
+        """Beacon minus vehicle velocity for a new track: the deck's prior minus the
+        vehicle's last velocity (README, D7); the deck's prior alone without a velocity."""
+        dvx, dvy = self.deck_velocity_prior_mps
+        if not (_isfinite(dvx) and _isfinite(dvy)):
+            dvx = dvy = 0.0
+        if self._pos is None:
+            return dvx, dvy
+        vel = self._pos[2]
+        return dvx - vel[0], dvy - vel[1]
 
     def _camera_delta(self, height_m: float) -> float:
         """δ = level of the beacon's surface − level of the surface under the vehicle (the

@@ -129,8 +129,8 @@ class DeckAccelKF:
         #            P00  P01  P02  P11  P12  P22
 
     def reset(self, x: float, y: float, pos_var: float, vel_var: float,
-              acc_var: float) -> None:
-        self._s = [[x, 0.0, 0.0], [y, 0.0, 0.0]]
+              acc_var: float, vx: float = 0.0, vy: float = 0.0) -> None:
+        self._s = [[x, vx, 0.0], [y, vy, 0.0]]
         self._p = [[pos_var, 0.0, 0.0, vel_var, 0.0, acc_var],
                    [pos_var, 0.0, 0.0, vel_var, 0.0, acc_var]]
 
@@ -460,6 +460,9 @@ class HorizontalTracker:
                                         'probes': 0}
         #: the camera's noise scale: a property of the sensor, kept across track restarts
         self.noise = NoiseScale(self.params.adapt_weight, self.params.adapt_max_scale)
+        #: the relative velocity a new track starts from (ENU): the owner's best prior,
+        #: deck velocity (telemetry, else at rest) minus the vehicle's (README, D7)
+        self.prior_velocity_mps: tuple[float, float] = (0.0, 0.0)
         self.reset()
 
     def reset(self) -> None:
@@ -523,9 +526,10 @@ class HorizontalTracker:
     def _start(self, t_s: float, x: float, y: float, r: float) -> None:
         p = self.params
         v0 = p.init_vel_sigma_mps
-        self.kf.reset(x, y, r, v0 * v0)
+        vx, vy = self.prior_velocity_mps
+        self.kf.reset(x, y, r, v0 * v0, vx, vy)
         a0 = p.deck_accel_init_sigma_mps2
-        self.deck_kf.reset(x, y, r, v0 * v0, a0 * a0)
+        self.deck_kf.reset(x, y, r, v0 * v0, a0 * a0, vx, vy)
         self.t_filter = t_s
         self.t_last_accept = t_s
         self.mode = 'acquiring'

@@ -205,7 +205,7 @@ class EstimatorLoop(InputGuard):
             self.reject('malformed_cloud', 'pixy/blocks (channels inconsistent with points)')
             return False
         self._t_camera = t_s
-        self.estimator.on_camera(t_s, blocks)
+        self._camera(t_s, blocks)
         return True
 
     def on_camera(self, now_s: float, t_s: float, blocks: Sequence[PixyBlock]) -> bool:
@@ -213,8 +213,15 @@ class EstimatorLoop(InputGuard):
         if not self._fresh(now_s, t_s, 'camera frame'):
             return False
         self._t_camera = t_s
-        self.estimator.on_camera(t_s, blocks)
+        self._camera(t_s, blocks)
         return True
+
+    def _camera(self, t_s: float, blocks: Sequence[PixyBlock]) -> None:
+        """A frame to the estimator, with the deck velocity a new track assumes: the ship's
+        telemetry when fresh, else at rest (apron_estimator README, D7)."""
+        tel = self.deck.telemetry_at(t_s)
+        self.estimator.deck_velocity_prior_mps = tel[1] if tel is not None else (0.0, 0.0)
+        self.estimator.on_camera(t_s, blocks)
 
     def on_deck_odom(self, now_s: float, t_s: float, position_m: Vec3, velocity_mps: Vec3,
                      attitude_valid: bool = False, rpy_rad: Vec3 = (0.0, 0.0, 0.0),

@@ -219,6 +219,13 @@ class AttitudeModel:
         st, sy = p.tilt_noise_rad, p.yaw_noise_rad
         return (b[0] + g[0] + st * n(), b[1] + g[1] + st * n(), b[2] + g[2] + sy * n())
 
+    @property
+    def heading_error_rad(self) -> float:
+        """The estimate's heading error now, white noise aside (bias + wander, about up):
+        an autopilot holds a heading setpoint on its estimate, so its true heading is the
+        setpoint minus this (``World.set_command``)."""
+        return self.bias[2] + self.drift[2]
+
     def sample(self, roll_rad: float, pitch_rad: float, yaw_rad: float) -> Vec3:
         """One estimate (roll, pitch, yaw) of the true attitude (Z-Y-X, FLU in ENU)."""
         e = self.error()

@@ -252,7 +252,11 @@ class World:
             self.rejected['nan'] += 1
             return
         v = self.vehicle
-        v.cmd_roll, v.cmd_pitch, v.cmd_yaw = roll_rad, pitch_rad, yaw_rad
+        # the autopilot holds the heading on its estimate (ATTITUDE's yaw, what the companion
+        # sees): the true heading is off by the estimate's error, R = Rz(−e_up) R_sp. Its
+        # tilt error (0.2° σ) is not applied: a level setpoint stays truly level (README)
+        v.cmd_roll, v.cmd_pitch = roll_rad, pitch_rad
+        v.cmd_yaw = yaw_rad - self.sensor_suite.attitude.heading_error_rad
         v.cmd_thrust = thrust_n if thrust_n > 0.0 else 0.0
 
     def command_link(self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float,

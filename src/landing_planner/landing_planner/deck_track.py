@@ -40,6 +40,8 @@ class DeckTrackParams:
     #                                   after it (a beacon fix's only at the fix: planner
     #                                   README, "Tilt at contact", the deck acceleration)
     speed_window_s: float = 3.0       # averaging time of the RMS speed (rms_speed_mps)
+    confirm_s: float = 2.0            # a beacon track's velocity is believed after this
+    #                                   long of fixes without a gap (see update)
 
     def __post_init__(self) -> None:
         chk.positive('DeckTrackParams.velocity_filter_s', self.velocity_filter_s)
@@ -47,6 +49,7 @@ class DeckTrackParams:
         chk.positive('DeckTrackParams.max_prediction_s', self.max_prediction_s)
         chk.non_negative('DeckTrackParams.accel_horizon_s', self.accel_horizon_s)
         chk.positive('DeckTrackParams.speed_window_s', self.speed_window_s)
+        chk.non_negative('DeckTrackParams.confirm_s', self.confirm_s)
 
 
 class TrackPoint:
@@ -81,21 +84,25 @@ class DeckTrack:
     """The pad from the beacon, else telemetry, else a prediction, else the landing area."""
 
     __slots__ = ('_acc', '_acc_horizon_s', '_fix_s', '_heading', '_hist', '_ms', '_pos',
-                 '_src', '_vel', '_yaw_rate', 'area_m', 'fixes', 'max_speed_mps', 'params')
+                 '_run_s', '_src', '_vel', '_vel_f', '_yaw_rate', 'area_m', 'confirmed',
+                 'fixes', 'max_speed_mps', 'params')
 
     def __init__(self, area_m: tuple[float, float],
                  params: DeckTrackParams | None = None) -> None:
         self.params = params or DeckTrackParams()
         self.area_m = (float(area_m[0]), float(area_m[1]))
         self.fixes = 0
-        self.max_speed_mps = 0.0     # fastest predicted velocity since the construction
+        self.max_speed_mps = 0.0     # fastest filtered velocity (confirmed or not) so far
+        self.confirmed = False       # a fix's velocity was ever believed (confirm_s)
         self.reset()
 
     def reset(self) -> None:
         """Forget every fix: the landing area at rest again."""
         self._pos = self.area_m
-        self._vel = (0.0, 0.0)
+        self._vel = (0.0, 0.0)       # the velocity predicted with (0 until confirmed)
+        self._vel_f = (0.0, 0.0)     # the filtered reported velocity
         self._acc = (0.0, 0.0)
+        self._run_s = -math.inf      # first fix of the current beacon run (confirm_s)
         self._acc_horizon_s = 0.0
         self._heading: float | None = None
         self._yaw_rate = 0.0
@@ -121,6 +128,16 @@ class DeckTrack:
         ``accepted``: the planner accepted the tracked beacon (finite, inside its gate).
         Telemetry counts when ``apron.source`` says so; a prediction the estimator made is
         not a fix (the track predicts itself).
+
+        A beacon track's velocity (and acceleration) is predicted with only after
+        ``confirm_s`` of fixes without a gap longer than ``velocity_window_s``; before, the
+        fixes are followed at rest. An acquisition's transient, and the scale error of a
+        beacon first seen beside a raised deck (the camera height is then the lidar's, over
+        the surface below: offsets ×2 at 1 m of freeboard), read as deck motion of the
+        vehicle's own speed: `sea_state_4` seed 100036 chased 0.8 m/s of it off a deck at
+        rest, lost the beacon and searched along the phantom track. Telemetry is
+        believed at once, and so is a beacon run that continues a telemetry track (the
+        estimator starts its filter from the telemetry's velocity).
         """
         if accepted:
             src = DECK_SOURCE_BEACON
@@ -132,26 +149,37 @@ class DeckTrack:
         if not (_ok(t_s, p[0], p[1], v[0], v[1]) and t_s >= self._fix_s):
             return DECK_SOURCE_PREDICTION if self.has_fix else DECK_SOURCE_NONE
         acc = (float(a[0]), float(a[1])) if _ok(a[0], a[1]) else (0.0, 0.0)
+        prm = self.params
+        gap = t_s - self._fix_s
+        if src == DECK_SOURCE_TELEMETRY:
+            self._run_s = -math.inf            # believed, and a beacon run following it
+        elif gap > prm.velocity_window_s:
+            self._run_s = t_s                  # a new beacon run: not yet confirmed
+        confirmed = t_s - self._run_s >= prm.confirm_s
         if self.has_fix and self._fix_s > -math.inf:
             # first-order filter on the velocity: k = dt / (τ + dt)
-            dt = t_s - self._fix_s
-            k = dt / (self.params.velocity_filter_s + dt) if dt > 0.0 else 0.0
-            vel = (self._vel[0] + k * (v[0] - self._vel[0]),
-                   self._vel[1] + k * (v[1] - self._vel[1]))
-            km = dt / (self.params.speed_window_s + dt) if dt > 0.0 else 0.0
-            self._ms += km * (vel[0] * vel[0] + vel[1] * vel[1] - self._ms)
+            k = gap / (prm.velocity_filter_s + gap) if gap > 0.0 else 0.0
+            vf = self._vel_f
+            vel = (vf[0] + k * (v[0] - vf[0]), vf[1] + k * (v[1] - vf[1]))
         else:
             vel = (float(v[0]), float(v[1]))
+        self._vel_f = vel
+        if not confirmed:
+            vel, acc = (0.0, 0.0), (0.0, 0.0)
+        self.confirmed = self.confirmed or confirmed
+        if self.has_fix and self._fix_s > -math.inf and gap > 0.0:
+            km = gap / (prm.speed_window_s + gap)
+            self._ms += km * (vel[0] * vel[0] + vel[1] * vel[1] - self._ms)
         pos = (float(p[0]), float(p[1]))
         hist = self._hist
-        if hist and t_s - hist[-1][0] > self.params.velocity_window_s:
+        if hist and gap > prm.velocity_window_s:
             hist.clear()                       # a gap: the old fixes say nothing now
         hist.append((t_s, pos[0], pos[1]))
-        w = self.params.velocity_window_s
+        w = prm.velocity_window_s
         while len(hist) > 2 and t_s - hist[1][0] >= w:
             del hist[0]
         span = t_s - hist[0][0]
-        if span >= 0.5 * w and self.params.displacement_velocity:
+        if span >= 0.5 * w and prm.displacement_velocity and confirmed:
             # the displacement over the window (not the default: after an acquisition the
             # positions carry the estimator's transient too; ship_ss3 seed 100002 predicted
             # 5.5 m/s from them, 3.7 from the filtered velocity, for 2.5 m/s)
@@ -161,9 +189,11 @@ class DeckTrack:
         # short-horizon estimate of a sway (σ 0.15-0.6 m/s²): carried for a second it became
         # a lasting velocity error, and a static deck lost behind an occlusion was searched
         # for metres away (fault_beacon_occlusion seed 100002)
-        self._acc_horizon_s = (self.params.accel_horizon_s if src == DECK_SOURCE_TELEMETRY
+        self._acc_horizon_s = (prm.accel_horizon_s if src == DECK_SOURCE_TELEMETRY
                                else 0.0)
-        self.max_speed_mps = max(self.max_speed_mps, math.hypot(*vel))
+        # the evidence that the deck moves counts unconfirmed too: it only makes the planner
+        # more careful (no "land where it is" beside it, no blind descent onto it)
+        self.max_speed_mps = max(self.max_speed_mps, math.hypot(*self._vel_f))
         if apron.deck_attitude_valid and _ok(apron.deck_rpy_rad[2], apron.deck_yaw_rate_radps):
             self._heading = float(apron.deck_rpy_rad[2])
             self._yaw_rate = float(apron.deck_yaw_rate_radps)

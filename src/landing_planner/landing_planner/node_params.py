@@ -62,6 +62,8 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'constant_rate_mps': "world descent rate (m/s) of the 'constant_rate' profile",
     'timer_debounce_s': 'arrival/acceptance timers reset only after an excursion this long (s)',
     'deck_velocity_filter_s': 'deck track: time constant (s) of the velocity it predicts with',
+    'deck_confirm_s': 'deck track: a beacon track predicts with its velocity after this long '
+                      '(s) without a gap; before, at rest (telemetry: at once)',
     'track_timeout_s': 'deck track: a prediction older than this (s) is no track',
     'deck_yaw_offset_rad': 'heading (rad) to hold relative to the deck heading (telemetry)',
     'yaw_rate_max_radps': 'yaw alignment: rate limit (rad/s) of the heading command',

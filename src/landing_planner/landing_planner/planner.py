@@ -120,6 +120,7 @@ class PlannerParams:
     timer_debounce_s: float = 0.3       # arrival/acceptance timers reset only after an
     #                                     excursion this long (one noisy sample does not)
     deck_velocity_filter_s: float = 0.5  # DeckTrack: time constant of the predicted velocity
+    deck_confirm_s: float = 2.0         # DeckTrack: a beacon run's velocity used after this
     track_timeout_s: float = 60.0       # DeckTrack: a prediction older than this is no track
     deck_yaw_offset_rad: float = 0.0    # heading to hold relative to the deck's (any value)
     yaw_rate_max_radps: float = 0.5     # yaw alignment: rate limit of the heading command
@@ -350,7 +351,8 @@ class LandingPlanner:
         self._last_out: PlannerOutput | None = None
         # issue 13: the deck as a moving target, its vertical prediction, the go-arounds
         self._track = DeckTrack(p.landing_area_m, DeckTrackParams(
-            velocity_filter_s=p.deck_velocity_filter_s, max_prediction_s=p.track_timeout_s))
+            velocity_filter_s=p.deck_velocity_filter_s, max_prediction_s=p.track_timeout_s,
+            confirm_s=p.deck_confirm_s))
         self._tp: TrackPoint = self._track.at(0.0)
         heave = ChannelParams(warmup_updates=p.predictor_warmup_updates,
                               min_calibration=p.predictor_min_calibration)
@@ -667,10 +669,12 @@ class LandingPlanner:
         if search.retry():
             self._switch_to(Mode.SEARCH, t_s, f'{why}: search attempt {search.attempts} '
                             f'of {search.max_attempts} (Steps 11-12)')
-        elif self._deck_moving() and not self._over_deck():
+        elif self._deck_may_move() and not self._over_deck():
             # Step 14 "land where it is" would land on the sea beside a moving deck
+            deck = ('a moving deck' if self._deck_moving()
+                    else 'a deck seen too briefly to know it is at rest')
             self._switch_to(Mode.HOLD, t_s, f'{why}: {search.attempts} search attempts used '
-                            'on a moving deck: holding over its predicted track at the '
+                            f'on {deck}: holding over its predicted track at the '
                             'search height (Step 14 refused: no descent off the deck)',
                             follow_track=True)
         else:
@@ -828,6 +832,13 @@ class LandingPlanner:
     def _deck_moving(self) -> bool:
         """The deck is predicted moving, or was once tracked faster than a drifting barge."""
         return self._tp.moving or self._track.max_speed_mps > _MOVING_MPS
+
+    def _deck_may_move(self) -> bool:
+        """Moving, or seen too briefly to tell (no fix's velocity ever confirmed:
+        `paper_translating` seed 100227 saw its 0.5 m/s deck for 1 s in a search and, taken
+        for a deck at rest, landed beside it after the searches)."""
+        tr = self._track
+        return self._deck_moving() or (tr.has_fix and not tr.confirmed)
 
     def _wide_search(self) -> bool:
         """Search wide: the deck has never been seen (no fix) and may have moved off."""
@@ -1348,6 +1359,13 @@ class _Hold(_State):
                 else pl.params.approach_height_m)
         pl._l.hold_height_m = max(pl._stop_z(), base)
         pl._path_active = False
+
+    def run(self, pl: LandingPlanner, tk: _Tick) -> None:
+        # the searches were used up, not the landing: a deck that comes back into view is
+        # aligned on again (a later loss in ALIGN returns here, the search budget spent)
+        if pl._l.follow_track and tk.target_ok:
+            pl._switch_to(Mode.ALIGN, tk.t_s, 'target re-acquired while holding over the '
+                          "deck's predicted track (Step 4)")
 
     def horizontal(self, pl: LandingPlanner, tk: _Tick) -> None:
         if pl._l.follow_track:
