@@ -445,11 +445,15 @@ def test_every_estimator_field_is_a_parameter():
     for f in fields(EstimatorParams):
         if f.name not in dict(SECTIONS):
             assert f.name in names
-    from apron_estimator.node import ESTIMATOR_DESCRIPTIONS
+    from apron_estimator.deck import DeckFusionParams
+    for f in fields(DeckFusionParams):
+        assert f'deck.{f.name}' in names
+    from apron_estimator.node import DECK_DESCRIPTIONS, ESTIMATOR_DESCRIPTIONS
     for s in PARAMS:
         assert s.description
         if s.name in names - {n.name for n in NODE_PARAMS}:
-            assert s.name in ESTIMATOR_DESCRIPTIONS, f'describe {s.name} in node.py'
+            assert s.name in {**ESTIMATOR_DESCRIPTIONS, **DECK_DESCRIPTIONS}, \
+                f'describe {s.name} in node_params.py'
 
 
 @pytest.mark.parametrize('name, value, match', [
@@ -464,6 +468,7 @@ def test_every_estimator_field_is_a_parameter():
     ('loop_max_wait_s', 0.0005, r'max_wait_s must be in \[lead_s'),   # below loop_lead_s
     ('camera.fov_y_deg', 'wide', r'camera.fov_y_deg'),   # wrong type
     ('camera.fov_x_deg', 60, r"'camera.fov_x_deg'.*INTEGER.*DOUBLE"),  # int for a float
+    ('deck.telemetry_timeout_s', 0.0, r"'deck.telemetry_timeout_s'"),
 ])
 def test_bad_parameters_are_rejected_clearly(ros_context, name, value, match):
     from apron_estimator.node import ApronEstimatorNode
@@ -472,6 +477,21 @@ def test_bad_parameters_are_rejected_clearly(ros_context, name, value, match):
     context, _ = ros_context
     with pytest.raises(ParameterError, match=match):
         ApronEstimatorNode(context=context, parameter_overrides=[Parameter(name, value=value)])
+
+
+def test_deck_fusion_parameters_reach_the_loop(ros_context):
+    # until stop 25 the node built its EstimatorLoop with DeckFusionParams' defaults
+    from apron_estimator.node import ApronEstimatorNode
+    from rclpy.parameter import Parameter
+    context, _ = ros_context
+    node = ApronEstimatorNode(context=context, parameter_overrides=[
+        Parameter('deck.telemetry_timeout_s', value=3.0),
+        Parameter('deck.beacon_accel', value=False)])
+    try:
+        assert node.core.deck.params.telemetry_timeout_s == 3.0
+        assert node.core.deck.params.beacon_accel is False
+    finally:
+        node.destroy_node()
 
 
 def test_main_exits_2_on_a_bad_parameter(capsys):

@@ -40,17 +40,19 @@ from apron_estimator.deck import telemetry_from_odometry
 from apron_estimator.estimator import ApronEstimator
 from apron_estimator.loop import UNKNOWN_VAR, EstimatorLoop
 from apron_estimator.node_params import (
+    DECK_DESCRIPTIONS,
     ESTIMATOR_DESCRIPTIONS,
     NODE_PARAMS,
     PARAMS,
     SECTIONS,
+    deck_params_from,
     estimator_params_from,
 )
 from deckland_interfaces.msg import ApronState as ApronStateMsg
 from deckland_interfaces.msg import Rival
 
-__all__ = ['ESTIMATOR_DESCRIPTIONS', 'NODE_PARAMS', 'PARAMS', 'SECTIONS', 'ApronEstimatorNode',
-           'estimator_params_from', 'main']
+__all__ = ['DECK_DESCRIPTIONS', 'ESTIMATOR_DESCRIPTIONS', 'NODE_PARAMS', 'PARAMS', 'SECTIONS',
+           'ApronEstimatorNode', 'deck_params_from', 'estimator_params_from', 'main']
 
 
 def _locked(method):
@@ -70,6 +72,7 @@ class ApronEstimatorNode(GuardedNode, Node):
         p = declare_and_validate(self, PARAMS)
         self.cfg = p
         self.core = EstimatorLoop(ApronEstimator(estimator_params_from(p)),
+                                  deck=deck_params_from(p),
                                   input_timeout_s=p['input_timeout_s'],
                                   gravity_mps2=p['gravity_mps2'],
                                   position_pair_tolerance_s=p['position_pair_tolerance_s'],

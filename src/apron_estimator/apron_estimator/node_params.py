@@ -1,9 +1,10 @@
 """The apron estimator node's ROS parameters (pure: specs and their conversion, no rclpy).
 
 Every ``EstimatorParams`` field flattened as ``section.field`` (``camera.``, ``horizontal.``,
-``vertical.``) or ``field``, with its meaning; defaults come from the dataclasses, so they
-never drift apart. Then the node's own parameters (clock, rate, timeouts, frames).
-:func:`estimator_params_from` builds ``EstimatorParams`` from validated values.
+``vertical.``) or ``field``, and every ``DeckFusionParams`` field as ``deck.field``, with its
+meaning; defaults come from the dataclasses, so they never drift apart. Then the node's own
+parameters (clock, rate, timeouts, frames). :func:`estimator_params_from` and
+:func:`deck_params_from` build the cores' parameters from validated values.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import re
 from deckland_common.params import ParameterError, ParamSpec, in_range, one_of, positive
 
 from apron_estimator.camera import CameraParams
+from apron_estimator.deck import DeckFusionParams
 from apron_estimator.estimator import EstimatorParams
 from apron_estimator.horizontal import HorizontalParams
 from apron_estimator.loop import UNKNOWN_VAR
@@ -119,6 +121,35 @@ ESTIMATOR_DESCRIPTIONS = {
 }
 
 
+#: Meaning of every ``DeckFusionParams`` field, as the node's ``deck.<field>`` parameter.
+DECK_DESCRIPTIONS = {
+    'deck.telemetry_timeout_s': 'a deck/odom sample older than this (s) is not the deck any '
+                                'more',
+    'deck.attitude_timeout_s': 'deck attitude valid while this fresh (s)',
+    'deck.attitude_extrapolation_s': 'deck roll / pitch / heading carried forward at most this '
+                                     'long (s)',
+    'deck.max_extrapolation_s': 'telemetry position carried forward at most this long (s)',
+    'deck.offset_tau_s': 'averaging time (s) of the learnt GNSS offset (beacon - telemetry)',
+    'deck.offset_gate_m': 'a residual this far (m) from the learnt offset is refused',
+    'deck.offset_max_rel_m': 'the offset is learnt only with the vehicle this close (m) above '
+                             'the beacon',
+    'deck.beacon_history_s': 'beacon estimates kept (s) to meet delayed telemetry at its stamp',
+    'deck.prediction_timeout_s': 'constant-velocity prediction of a lost deck at most this '
+                                 'long (s)',
+    'deck.accel_tau_s': "low-pass time constant (s) of the telemetry's deck acceleration",
+    'deck.max_accel_mps2': 'clamp (m/s^2) of the published deck acceleration',
+    'deck.beacon_accel': "while tracked, publish the beacon filter's deck acceleration rather "
+                         "than the telemetry's",
+}
+
+
+def _deck_specs() -> list[ParamSpec]:
+    """One ParamSpec per DeckFusionParams field, as ``deck.field``."""
+    return [ParamSpec(f'deck.{f.name}', f.default,
+                      DECK_DESCRIPTIONS[f'deck.{f.name}'] + ' (core default; the core validates)')
+            for f in fields(DeckFusionParams)]
+
+
 def _estimator_specs() -> list[ParamSpec]:
     """One ParamSpec per EstimatorParams field, flattened as ``section.field`` / ``field``."""
     specs = []
@@ -170,10 +201,11 @@ NODE_PARAMS = [
               'frame_id of apron/relative(_velocity): heading-aligned FLU axes (Figure 8)'),
 ]
 
-PARAMS = _estimator_specs() + NODE_PARAMS
+PARAMS = _estimator_specs() + _deck_specs() + NODE_PARAMS
 
 _CLASS_PREFIX = {'CameraParams': 'camera.', 'HorizontalParams': 'horizontal.',
-                 'VerticalParams': 'vertical.', 'EstimatorParams': ''}
+                 'VerticalParams': 'vertical.', 'EstimatorParams': '',
+                 'DeckFusionParams': 'deck.'}
 
 
 def estimator_params_from(values: dict) -> EstimatorParams:
@@ -185,7 +217,19 @@ def estimator_params_from(values: dict) -> EstimatorParams:
                if f.default is not MISSING}
         return EstimatorParams(**nested, **top)
     except ValueError as exc:
-        text = str(exc)
-        m = re.match(r'(\w+)\.(\w+)', text)
-        name = (_CLASS_PREFIX.get(m.group(1), '') + m.group(2)) if m else '?'
-        raise ParameterError(f'parameter {name!r}: {text}') from exc
+        raise ParameterError(f'parameter {_name_of(exc)!r}: {exc}') from exc
+
+
+def _name_of(exc: ValueError) -> str:
+    """The ROS parameter a core's ``Class.field`` error names ('?' if none)."""
+    m = re.match(r'(\w+)\.(\w+)', str(exc))
+    return (_CLASS_PREFIX.get(m.group(1), '') + m.group(2)) if m else '?'
+
+
+def deck_params_from(values: dict) -> DeckFusionParams:
+    """Build DeckFusionParams from validated flat values; ParameterError names the parameter."""
+    try:
+        return DeckFusionParams(**{f.name: values[f'deck.{f.name}']
+                                   for f in fields(DeckFusionParams)})
+    except ValueError as exc:
+        raise ParameterError(f'parameter {_name_of(exc)!r}: {exc}') from exc
