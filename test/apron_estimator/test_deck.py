@@ -229,8 +229,10 @@ def test_a_new_beacon_track_starts_from_the_telemetry_velocity_while_it_is_fresh
     """The loop hands the estimator the ship's velocity as the prior of a new track (README
     D7); without fresh telemetry the deck is assumed at rest."""
     loop = EstimatorLoop(ApronEstimator())
+    priors = []
+    loop.estimator.on_camera = lambda t, blocks, deck_v: priors.append(deck_v)
     assert loop.on_deck_odom(10.0, 10.0, (5.0, 0.0, 0.0), (2.0, 0.5, 0.0))
     loop.on_camera(10.2, 10.1, [])
-    assert loop.estimator.deck_velocity_prior_mps == pytest.approx((2.0, 0.5))
+    assert priors[-1] == pytest.approx((2.0, 0.5))
     loop.on_camera(12.0, 12.0, [])      # the telemetry is 2 s old: timed out (1.5 s)
-    assert loop.estimator.deck_velocity_prior_mps == (0.0, 0.0)
+    assert priors[-1] == (0.0, 0.0)

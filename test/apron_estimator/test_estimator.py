@@ -373,7 +373,7 @@ def test_a_deck_level_drifted_by_the_heave_is_re_anchored_over_the_beacon():
         assert e[0] == pytest.approx(tr[0], abs=0.01)
 
 
-def _fly_past_a_beacon(est, deck_v=(0.0, 0.0), frames=4):
+def _fly_past_a_beacon(est, deck_v=(0.0, 0.0), frames=4, prior=(0.0, 0.0)):
     """A level vehicle at 1 m/s east, 2 m over a deck moving at ``deck_v``; the beacon comes
     into view: returns the apron state right after the track is acquired."""
     t = 0.0
@@ -386,7 +386,7 @@ def _fly_past_a_beacon(est, deck_v=(0.0, 0.0), frames=4):
         est.on_lidar(t, 2.0)
         est.on_local_position(t, vehicle, (1.0, 0.0, 0.0))
         pix = project(tuple(b - v for b, v in zip(beacon, vehicle, strict=True)), 0.0, 0.0, 0.0)
-        est.on_camera(t, [PixyBlock(1, pix[0], pix[1], 5, 5)])
+        est.on_camera(t, [PixyBlock(1, pix[0], pix[1], 5, 5)], prior)
     s = est.state(t)
     assert s.tracked
     return s
@@ -400,7 +400,5 @@ def test_a_new_track_starts_with_the_deck_at_rest_not_moving_with_the_vehicle():
     assert math.hypot(*s.apron_velocity_mps) < 0.15
     assert s.rel_velocity_mps[0] == pytest.approx(-1.0, abs=0.15)
     # a ship's telemetry velocity is the prior when the owner (the loop) has one
-    est = ApronEstimator()
-    est.deck_velocity_prior_mps = (2.0, 0.5)
-    s = _fly_past_a_beacon(est, deck_v=(2.0, 0.5))
+    s = _fly_past_a_beacon(ApronEstimator(), deck_v=(2.0, 0.5), prior=(2.0, 0.5))
     assert s.apron_velocity_mps == pytest.approx((2.0, 0.5), abs=0.15)

@@ -80,9 +80,6 @@ class ApronEstimator:
         self._delta_m = 0.0     # the camera height's level correction used last (_camera_delta)
         self._top_level_m = 0.0   # the deck's surface level (_camera_delta)
         self._low_level_m = 0.0   # the lowest surface level seen
-        #: the deck's velocity a new track assumes (ENU): the owner sets the ship's
-        #: telemetry when it has it; (0, 0) = at rest (README, D7)
-        self.deck_velocity_prior_mps: tuple[float, float] = (0.0, 0.0)
 
     @property
     def rejected(self) -> dict[str, int]:
@@ -195,8 +192,11 @@ class ApronEstimator:
                 self.horizontal.rescale(c_after / c_before)
             self._delta_m = d_after
 
-    def on_camera(self, t_s: float, blocks: Sequence[PixyBlock]) -> None:
-        """One Pixy frame; ``t_s`` is its exposure stamp (may be in the past)."""
+    def on_camera(self, t_s: float, blocks: Sequence[PixyBlock],
+                  deck_velocity_mps: tuple[float, float] = (0.0, 0.0)) -> None:
+        """One Pixy frame; ``t_s`` is its exposure stamp (may be in the past).
+        ``deck_velocity_mps``: the deck's velocity (ENU) a track started by this frame assumes
+        — the ship's telemetry when the owner has it, else at rest (README, D7)."""
         if not _isfinite(t_s):
             self._own['nan'] += 1
             return
@@ -255,9 +255,9 @@ class ApronEstimator:
         if vf.initialised and self._recent_lidar(t_s):
             surface = vf.surface_level_m
         hz = self.horizontal
-        hz.prior_velocity_mps = self._relative_velocity_prior()   # used if a track starts
         top = None if self.params.camera.paper_exact else self._top_level_m
-        if hz.update(t_s, candidates, height, surface, self._lidar_spot, top) and (
+        prior = self._relative_velocity_prior(deck_velocity_mps)
+        if hz.update(t_s, candidates, height, surface, self._lidar_spot, top, prior) and (
                 surface is not None and hz.mode == 'tracking'):
             # the lidar spot on the tracked beacon: the surface under it is the beacon's
             x, y = hz.kf.px, hz.kf.py
@@ -267,10 +267,11 @@ class ApronEstimator:
                     and surface - self._low_level_m > self._top_level_m - surface):
                 self._top_level_m = surface
 
-    def _relative_velocity_prior(self) -> tuple[float, float]:
+    def _relative_velocity_prior(self, deck_velocity_mps: tuple[float, float]
+                                 ) -> tuple[float, float]:
         """Beacon minus vehicle velocity for a new track: the deck's prior minus the
         vehicle's last velocity (README, D7); the deck's prior alone without a velocity."""
-        dvx, dvy = self.deck_velocity_prior_mps
+        dvx, dvy = deck_velocity_mps
         if not (_isfinite(dvx) and _isfinite(dvy)):
             dvx = dvy = 0.0
         if self._pos is None:

@@ -460,9 +460,6 @@ class HorizontalTracker:
                                         'probes': 0}
         #: the camera's noise scale: a property of the sensor, kept across track restarts
         self.noise = NoiseScale(self.params.adapt_weight, self.params.adapt_max_scale)
-        #: the relative velocity a new track starts from (ENU): the owner's best prior,
-        #: deck velocity (telemetry, else at rest) minus the vehicle's (README, D7)
-        self.prior_velocity_mps: tuple[float, float] = (0.0, 0.0)
         self.reset()
 
     def reset(self) -> None:
@@ -523,10 +520,11 @@ class HorizontalTracker:
             self.mode = 'idle'
             self.hits = 0
 
-    def _start(self, t_s: float, x: float, y: float, r: float) -> None:
+    def _start(self, t_s: float, x: float, y: float, r: float,
+               prior_velocity_mps: tuple[float, float]) -> None:
         p = self.params
         v0 = p.init_vel_sigma_mps
-        vx, vy = self.prior_velocity_mps
+        vx, vy = prior_velocity_mps
         self.kf.reset(x, y, r, v0 * v0, vx, vy)
         a0 = p.deck_accel_init_sigma_mps2
         self.deck_kf.reset(x, y, r, v0 * v0, a0 * a0, vx, vy)
@@ -546,7 +544,8 @@ class HorizontalTracker:
     def update(self, t_s: float, candidates: list[tuple[float, float]],
                height_m: float, surface_m: float | None = None,
                spot_m: tuple[float, float] = (0.0, 0.0),
-               top_m: float | None = None) -> bool:
+               top_m: float | None = None,
+               prior_velocity_mps: tuple[float, float] = (0.0, 0.0)) -> bool:
         """One camera frame: candidate beacon offsets (ENU, m), best first; True if accepted.
 
         ``t_s`` is the exposure stamp; frames must be strictly in order (else rejected and
@@ -559,6 +558,8 @@ class HorizontalTracker:
         lidar spot, displaced by the tilt; a hypothesis is sampled while the spot is near it.
         ``top_m`` is the deck's level (the highest surface, the estimator's decision 12d): a
         track sampled more than ``deck_rise_m`` below it is on the ground, not the beacon.
+        ``prior_velocity_mps``: the relative velocity (ENU) a track started by this frame
+        begins with — the owner's best prior, deck velocity minus the vehicle's (README, D7).
         """
         if not (math.isfinite(t_s) and math.isfinite(height_m)):
             self.rejected['nan'] += 1
@@ -580,7 +581,7 @@ class HorizontalTracker:
         r0 = sigma * sigma
         r = r0 * self.noise.scale if self.params.adapt_noise else r0
         if self.mode == 'idle' or self.t_filter is None:   # (a track always has a filter time)
-            self._start(t_s, good[0][0], good[0][1], r)
+            self._start(t_s, good[0][0], good[0][1], r, prior_velocity_mps)
             self.visible = True
             return True
         kf = self.kf
@@ -607,7 +608,7 @@ class HorizontalTracker:
             if self.mode == 'acquiring':
                 # inconsistent with the candidate track: start over from this detection
                 self.events['restarts'] += 1
-                self._start(t_s, good[0][0], good[0][1], r)
+                self._start(t_s, good[0][0], good[0][1], r, prior_velocity_mps)
                 self.visible = True
                 return True
             return False

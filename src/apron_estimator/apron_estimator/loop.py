@@ -220,8 +220,7 @@ class EstimatorLoop(InputGuard):
         """A frame to the estimator, with the deck velocity a new track assumes: the ship's
         telemetry when fresh, else at rest (apron_estimator README, D7)."""
         tel = self.deck.telemetry_at(t_s)
-        self.estimator.deck_velocity_prior_mps = tel[1] if tel is not None else (0.0, 0.0)
-        self.estimator.on_camera(t_s, blocks)
+        self.estimator.on_camera(t_s, blocks, tel[1] if tel is not None else (0.0, 0.0))
 
     def on_deck_odom(self, now_s: float, t_s: float, position_m: Vec3, velocity_mps: Vec3,
                      attitude_valid: bool = False, rpy_rad: Vec3 = (0.0, 0.0, 0.0),

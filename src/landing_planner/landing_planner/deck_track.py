@@ -151,9 +151,10 @@ class DeckTrack:
         acc = (float(a[0]), float(a[1])) if _ok(a[0], a[1]) else (0.0, 0.0)
         prm = self.params
         gap = t_s - self._fix_s
+        broken = gap > prm.velocity_window_s   # a gap: the old fixes say nothing now
         if src == DECK_SOURCE_TELEMETRY:
             self._run_s = -math.inf            # believed, and a beacon run following it
-        elif gap > prm.velocity_window_s:
+        elif broken:
             self._run_s = t_s                  # a new beacon run: not yet confirmed
         confirmed = t_s - self._run_s >= prm.confirm_s
         if self.has_fix and self._fix_s > -math.inf:
@@ -172,8 +173,8 @@ class DeckTrack:
             self._ms += km * (vel[0] * vel[0] + vel[1] * vel[1] - self._ms)
         pos = (float(p[0]), float(p[1]))
         hist = self._hist
-        if hist and gap > prm.velocity_window_s:
-            hist.clear()                       # a gap: the old fixes say nothing now
+        if hist and broken:
+            hist.clear()
         hist.append((t_s, pos[0], pos[1]))
         w = prm.velocity_window_s
         while len(hist) > 2 and t_s - hist[1][0] >= w:
