@@ -242,7 +242,8 @@ def test_the_estimator_passes_the_lidar_spot_of_a_tilted_vehicle():
     the left (+y) — the lidar points along −z body, the opposite of the lean."""
     seen = []
     est = ApronEstimator()
-    est.horizontal.update = lambda t, c, h, s=None, spot=(0.0, 0.0), top=None: seen.append(spot)
+    est.horizontal.update = (lambda t, c, h, s=None, spot=(0.0, 0.0), top=None,
+                             prior=(0.0, 0.0): seen.append(spot))
     h = 1.5
     for k, (roll, pitch) in enumerate(((0.0, 0.1), (0.1, 0.0))):
         t = 1.0 + k
