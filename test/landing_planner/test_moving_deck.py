@@ -488,7 +488,8 @@ def test_final_holds_then_commits_into_a_window_and_not_into_a_triangle_reversal
     z, v, bottoms = triangle(phase_s=phase_s)
     # the plan describes the vehicle: the stand-in descends at ≈ 0.085 m/s after a commit
     # (0.12 m in 1.4 s), the stack's leashed descent at ≈ 0.065 (the default)
-    p = PlannerParams(commit_timeout_s=40.0, commit_plan_speed_mps=0.085)
+    p = PlannerParams(commit_timeout_s=40.0, commit_search_s=40.0,
+                      commit_plan_speed_mps=0.085)
     sim = Heave(p, z, v)
     into_final(sim)
     while sim.contact is None and sim.t < 60.0:
@@ -557,6 +558,26 @@ def test_without_a_ready_prediction_the_hold_ends_after_the_timeout():
     assert t_c - t_final == pytest.approx(3.0, abs=0.05)
 
 
+def test_the_window_search_is_timed_from_the_predictions_readiness():
+    # a deck heaving at 0.4 m/s: no commit meets 0.15 m/s, so the hold waits for the prediction
+    # (commit_timeout_s), then searches commit_search_s from its readiness, not from the hold,
+    # then takes the best commit offered within 3 s
+    z, v, _ = triangle(stroke=0.30, speed=0.4)
+    p = PlannerParams(commit_timeout_s=40.0, commit_search_s=4.0)
+    sim = Heave(p, z, v)
+    into_final(sim)
+    t_final = sim.t
+    t_ready = None
+    while sim.contact is None and sim.t < 80.0:
+        sim.step()
+        if t_ready is None and sim.p.predictor.ready:
+            t_ready = sim.t
+    assert t_ready is not None and t_ready - t_final > 5.0    # ready well after the hold began
+    t_c, why = sim.commits[0]
+    assert 'the best commit offered' in why or 'no commit window within' in why, why
+    assert p.commit_search_s - 0.05 <= t_c - t_ready <= p.commit_search_s + 3.05
+
+
 def test_a_deck_that_breaks_the_prediction_sends_the_vehicle_around_a_bounded_number_of_times():
     z0, v0, _ = triangle()
     pulses: list[float] = []     # the deck drops 15 cm for 1 s after every commit
@@ -564,7 +585,7 @@ def test_a_deck_that_breaks_the_prediction_sends_the_vehicle_around_a_bounded_nu
     def z(t):
         return z0(t) - (0.15 if any(t0 <= t < t0 + 1.0 for t0 in pulses) else 0.0)
 
-    p = PlannerParams(commit_timeout_s=40.0, max_go_arounds=2)
+    p = PlannerParams(commit_timeout_s=40.0, commit_search_s=40.0, max_go_arounds=2)
     sim = Heave(p, z, v0)
     into_final(sim)
     n_commits = 0

@@ -70,7 +70,10 @@ PLANNER_DESCRIPTIONS: dict[str, str] = {
     'yaw_tolerance_rad': 'yaw alignment: descend only within this (rad) of the deck heading',
     'timed_touchdown': 'FINAL holds a gear clearance and commits into a predicted window',
     'commit_clearance_m': 'FINAL hold: gear this far (m) above the pad before the commit',
-    'commit_timeout_s': 'FINAL hold at most this long (s), then the final descent as before',
+    'commit_timeout_s': 'FINAL hold without a ready deck prediction at most this long (s), then '
+                        'the final descent as before',
+    'commit_search_s': 'FINAL hold with a ready deck prediction: look for a commit window this '
+                       'long (s), then the best commit offered within 3 s, then as before',
     'commit_check_s': 'look for a commit window every this often (s) while holding',
     'commit_follow_lag_s': 'commit window: lag (s) of the vehicle following the deck',
     'commit_leash_m': 'final_leash_m (m) of a descent committed into a window',

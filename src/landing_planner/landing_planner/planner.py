@@ -127,7 +127,11 @@ class PlannerParams:
     yaw_tolerance_rad: float = 0.1      # ... DESCEND only within this of the deck heading
     timed_touchdown: bool = True        # FINAL: hold, commit into a predicted window
     commit_clearance_m: float = 0.12    # FINAL hold: gear this far above the pad
-    commit_timeout_s: float = 15.0      # FINAL hold at most this long, then descend as before
+    commit_timeout_s: float = 15.0      # FINAL hold without a ready prediction at most this
+    #                                     long, then descend as before
+    commit_search_s: float = 5.0        # ... with one, look for a window this long (from the
+    #                                     later of the hold and the prediction's readiness:
+    #                                     any 5 s of the paper triangle hold 1.7 s of downstroke)
     commit_leash_m: float = 0.02        # final_leash_m of a descent committed into a window
     commit_check_s: float = 0.1         # find_window every this often while holding
     commit_follow_lag_s: float = 0.25   # DescentPlan.follow_lag_s (vehicle + estimator lag)
@@ -281,6 +285,7 @@ class _Latch:
     committed: bool = False      # FINAL: the descent is committed (else holding)
     windowed: bool = False       # ... into a predicted window (the looser commit leash)
     t_check: float = -math.inf   # FINAL: last find_window
+    t_ready: float = math.nan    # FINAL: since when the prediction has been ready (NaN: not)
 
 
 class _Tick:
@@ -703,19 +708,28 @@ class LandingPlanner:
             self._monitor.disarm()
 
     def _try_commit(self, tk: _Tick) -> None:
-        """FINAL hold: commit when a descent started now lands inside a predicted window;
-        after ``commit_timeout_s`` descend as before (Step 10)."""
+        """FINAL hold: commit when a descent started now lands inside a predicted window.
+        Bounded: without a ready prediction for ``commit_timeout_s``, or with one but no
+        window for ``commit_search_s`` and then no best commit offered for 3 s more, descend
+        as before (Step 10)."""
         p = self.params
         latch = self._l
         t = tk.t_s
-        late = t - latch.t_mode >= p.commit_timeout_s
-        # past the timeout with a ready prediction: the best commit it offers within one
-        # horizon more (find_window's best_commit_s), then, bounded, as before
-        if late and (not self.predictor.ready
-                     or t - latch.t_mode >= p.commit_timeout_s + _BEST_WAIT_S):
-            why = 'window' if self.predictor.ready else 'ready prediction'
-            self._commit_now(t, f'no commit {why} within {t - latch.t_mode:.1f} s of '
-                             'holding: final descent as before (Step 10)', False, False)
+        if not self.predictor.ready:
+            latch.t_ready = math.nan
+            if t - latch.t_mode >= p.commit_timeout_s:
+                self._commit_now(t, f'no commit ready prediction within {t - latch.t_mode:.1f}'
+                                 ' s of holding: final descent as before (Step 10)', False, False)
+            return
+        if math.isnan(latch.t_ready):
+            latch.t_ready = t
+        searched = t - latch.t_ready
+        late = searched >= p.commit_search_s
+        # past the search with no window: the best commit offered within one horizon more
+        # (find_window's best_commit_s), then, bounded, as before
+        if searched >= p.commit_search_s + _BEST_WAIT_S:
+            self._commit_now(t, f'no commit window within {searched:.1f} s of a ready '
+                             'prediction: final descent as before (Step 10)', False, False)
             return
         if t - latch.t_check < p.commit_check_s or not self.predictor.ready:
             return
@@ -734,7 +748,7 @@ class LandingPlanner:
         elif late and w.best_commit_s <= t + 0.5 * p.commit_check_s:
             tilt = ('' if not math.isfinite(w.best_tilt_hi_rad) else
                     f', tilt <= {math.degrees(w.best_tilt_hi_rad):.1f}°')
-            self._commit_now(t, f'no window within {p.commit_timeout_s:.1f} s: the best '
+            self._commit_now(t, f'no window within {p.commit_search_s:.1f} s: the best '
                              f'commit offered (contact at <= {w.best_speed_hi_mps:.2f} m/s'
                              f'{tilt}, Step 10)', True, False)
 
