@@ -83,8 +83,10 @@ accel: setup
 run: setup
 	$(VENV)/bin/deckland up --scenario $(SCENARIO) --record runs/latest
 
+# The suite on two workers, then the whole missions against the wall clock (marker `solo`) alone.
 test: setup setup-ray accel
-	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test -n 2 --dist loadgroup
+	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test -n 2 --dist loadgroup -m 'not sitl_mission and not solo'
+	DECKLAND_REQUIRE_ACCEL=1 $(PY) -m pytest test -m 'solo and not sitl_mission'
 
 # Whole missions through the real PX4 / ArduPilot SITL (minutes each, needs a quiet machine).
 test-sitl: setup accel

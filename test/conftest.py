@@ -40,6 +40,8 @@ TIMING_MARKERS = ('ros', 'timing')
 #: markers of tests that start graphs, nodes or firmware: under ``make test`` (pytest-xdist,
 #: ``-n 2 --dist loadgroup``) they run one after another on one worker (group ``graph``)
 #: while the pure tests (group ``cores``) run beside them, niced, on the other
+#: (tests marked ``solo``, whole missions against the wall clock, run after, alone: beside the
+#: parallel suite a slow 2-core machine starved their graph, 2026-12-07)
 GRAPH_MARKERS = (*TIMING_MARKERS, 'sitl')
 
 

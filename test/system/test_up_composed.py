@@ -97,6 +97,7 @@ def test_composed_mode_has_the_nodes_and_topics_of_the_per_process_mode():
     assert ('control/thrust', ('geometry_msgs/msg/WrenchStamped',)) in composed['topics']
 
 
+@pytest.mark.solo
 def test_composed_mode_lands_with_the_same_topics_as_one_process_per_node(tmp_path):
     res_c, rep_c, run_c = fly(tmp_path, 'composed', '--composed')
     log = res_c.stdout[-3000:] + res_c.stderr[-2000:]
@@ -110,6 +111,7 @@ def test_composed_mode_lands_with_the_same_topics_as_one_process_per_node(tmp_pa
     assert res_p.returncode == 0 and rep_p['success'] is True, res_p.stdout[-3000:]
 
 
+@pytest.mark.solo
 def test_a_node_kill_in_composed_mode_takes_the_stack_and_ends_in_the_failsafe(tmp_path):
     res, report, run = fly(tmp_path, 'kill', '--composed', scenario='fault_node_kill',
                            timeout=45)

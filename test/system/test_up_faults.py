@@ -21,6 +21,7 @@ pytestmark = pytest.mark.timing   # a graph on the wall clock: reruns on a miss
 DECKLAND = str(pathlib.Path(sys.executable).with_name('deckland'))
 
 
+@pytest.mark.solo
 def test_node_kill_of_the_altitude_controller_ends_in_a_failsafe_landing(tmp_path):
     (fault,) = load_scenario('fault_node_kill').faults
     assert (fault.type, fault.node, fault.start_s) == ('node_kill', 'dob_altitude', 5.0)

@@ -18,6 +18,7 @@ pytestmark = pytest.mark.ros
 DECKLAND = str(pathlib.Path(sys.executable).with_name('deckland'))
 
 
+@pytest.mark.solo
 def test_deckland_up_paper_lands_in_real_time(tmp_path):
     from rosbags.highlevel import AnyReader
 
