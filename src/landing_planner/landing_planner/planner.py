@@ -731,7 +731,7 @@ class LandingPlanner:
             self._commit_now(t, f'no commit window within {searched:.1f} s of a ready '
                              'prediction: final descent as before (Step 10)', False, False)
             return
-        if t - latch.t_check < p.commit_check_s or not self.predictor.ready:
+        if t - latch.t_check < p.commit_check_s:
             return
         h = self._height
         if not (tk.vert_ok and tk.veh_ok) or h is None or not self._zref_ok:
