@@ -4,6 +4,7 @@ A random ROS_DOMAIN_ID per test session and localhost-only discovery are set bef
 imports rclpy, so parallel CI jobs and developers' machines never see each other's topics.
 """
 
+import contextlib
 import os
 import random
 import sys
@@ -45,15 +46,33 @@ TIMING_MARKERS = ('ros', 'timing')
 GRAPH_MARKERS = (*TIMING_MARKERS, 'sitl')
 
 
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     """Retry a timing-sensitive test twice before its failure counts (pytest-rerunfailures);
-    put every test in the ``graph`` or the ``cores`` group (pytest-xdist)."""
+    put every test in the ``graph`` or the ``cores`` group (pytest-xdist).
+
+    ``tryfirst``: xdist's worker turns the ``xdist_group`` marker into the ``@group`` suffix of
+    the node id in its own hook of this name, which must see the marker."""
     for item in items:
         timing = any(item.get_closest_marker(m) for m in TIMING_MARKERS)
         if timing and not item.get_closest_marker('flaky'):
             item.add_marker(pytest.mark.flaky(reruns=2, reruns_delay=1))
         graph = any(item.get_closest_marker(m) for m in GRAPH_MARKERS)
         item.add_marker(pytest.mark.xdist_group('graph' if graph else 'cores'))
+
+
+def pytest_xdist_node_collection_finished(node, ids):
+    """Under ``--dist loadgroup`` every node id must carry its group, else xdist schedules the
+    graph tests on both workers at once, silently: pytest 9.2 drops the suffix (pytest-xdist
+    #1386; the CI of 2026-12-07 hung so, past its 90 min). Stops the run with the reason."""
+    if node.config.getoption('dist', None) == 'loadgroup':
+        lost = [i for i in ids if '@' not in i]
+        if lost:
+            pytest.exit(f'pytest-xdist lost the test groups ({len(lost)} node ids without '
+                        f'"@group", e.g. {lost[0]}): pytest {pytest.__version__} with this '
+                        'pytest-xdist cannot run `make test`; install the pinned versions '
+                        '(requirements.txt)',
+                        returncode=3)
 
 
 def pytest_runtest_setup(item):
@@ -90,13 +109,26 @@ def ros_context():
     context = rclpy.Context()
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
+    added = []                  # every node ever added, even if a test removed it again
+    add_node = executor.add_node
+
+    def add_and_remember(node):
+        added.append(node)
+        return add_node(node)
+
+    executor.add_node = add_and_remember
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
     try:
         yield context, executor
     finally:
+        # shutdown() forgets the executor's nodes, so they are destroyed from ``added``: a node
+        # never destroyed keeps its own threads (the estimator's loop, the bridge's reader)
+        # running for the rest of the worker's session (2026-12-08: 12 loops and 7 readers by
+        # the bridge tests, 30-60 % of a core between tests)
         executor.shutdown(timeout_sec=2.0)
-        for node in list(executor.get_nodes()):
-            node.destroy_node()
+        for node in reversed(added):
+            with contextlib.suppress(Exception):     # already destroyed by the test
+                node.destroy_node()
         context.try_shutdown()
         thread.join(timeout=5.0)
