@@ -4,6 +4,7 @@ signal (README-up.md), and the bag being recorded is finished and readable, with
 saying why the run ended."""
 
 import json
+import os
 import pathlib
 import re
 import signal
@@ -73,3 +74,34 @@ def test_a_signal_stops_every_child_within_5_s_cleanly_and_finishes_the_bag(tmp_
     assert report['interrupted'] == name and report['exit_status'] == 128 + sig
     assert report['success'] is False and report['bag']['messages'] == info.message_count
     assert 'crashed_nodes' not in report          # the stop is not a crash
+
+
+def test_a_killed_deckland_up_takes_its_nodes_with_it(tmp_path):
+    """SIGKILL (no handler runs) to ``deckland up``: every node still gets SIGTERM from the
+    kernel (PR_SET_PDEATHSIG) and is gone within 5 s, instead of flying on unsupervised."""
+    log = tmp_path / 'up.log'
+    with open(log, 'w') as out:
+        proc = subprocess.Popen([DECKLAND, 'up', '--scenario', 'paper', '--timeout', '60'],
+                                stdout=out, stderr=subprocess.STDOUT, env=isolated_env())
+    pids: list[int] = []
+    try:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and 'all topics flowing' not in log.read_text():
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.1)
+        text = log.read_text()
+        pids = [int(p) for p in re.findall(r'started \w+ \(pid (\d+)\)', text)]
+        assert len(pids) == 6 and all(alive(p) for p in pids), text
+        proc.kill()
+        proc.wait(timeout=10.0)
+        t0 = time.monotonic()
+        while any(alive(p) for p in pids) and time.monotonic() - t0 < 10.0:
+            time.sleep(0.02)
+        gone_s = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for p in pids:                      # never leave them behind, even when failing
+            if alive(p):
+                os.kill(p, signal.SIGKILL)
+    assert gone_s <= 5.0, [p for p in pids if alive(p)]

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import math
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -222,6 +223,18 @@ def describe_status(code: int) -> str:
     return f'exit status {code}'
 
 
+def die_with_parent(cmd: list[str], sig: str = 'TERM') -> list[str]:
+    """``cmd`` run so that the kernel sends it ``sig`` when the thread that started it dies
+    (PR_SET_PDEATHSIG through util-linux ``setpriv``; ``cmd`` unchanged where it is missing).
+
+    A supervisor killed outright (SIGKILL, OOM) otherwise leaves its children running
+    unsupervised: nodes still commanding with no one to respawn or record them, a firmware
+    still holding its ports. The exec keeps the pid, so pids reported stay the children's.
+    """
+    setpriv = shutil.which('setpriv')
+    return [setpriv, '--pdeathsig', sig, '--', *cmd] if setpriv else cmd
+
+
 def members(spec: NodeSpec) -> list[str]:
     """The ROS node names a process runs: its components when composed, else its name."""
     return [c.name for c in getattr(spec, 'components', ())] or [spec.name]
@@ -268,8 +281,9 @@ class ManagedProcess:
         self._reader: threading.Thread | None = None
 
     def start(self) -> None:
+        # a node's life is bounded by its supervisor's: SIGTERM (a clean stop) if it dies
         self.proc = subprocess.Popen(
-            self.spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            die_with_parent(self.spec.command()), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL, env=self.env, text=True, bufsize=1, errors='replace',
             start_new_session=True, pass_fds=self.pass_fds)
         self.pids.append(self.proc.pid)

@@ -29,6 +29,7 @@ import time
 from typing import Any
 import weakref
 
+from deckland.graph.orchestrator import die_with_parent
 from deckland.sitl import SitlStartError
 
 
@@ -149,11 +150,9 @@ class SitlProcess:
         assert self.workdir is not None
         if self.nice:
             cmd = ['nice', '-n', str(self.nice), *cmd]
-        setpriv = shutil.which('setpriv')
-        if setpriv:
-            # SIGKILL to the firmware when the thread that started it dies (a killed test run
-            # must not leave it holding its instance's ports; util-linux, PR_SET_PDEATHSIG)
-            cmd = [setpriv, '--pdeathsig', 'KILL', '--', *cmd]
+        # SIGKILL to the firmware when the thread that started it dies (a killed test run
+        # must not leave it holding its instance's ports)
+        cmd = die_with_parent(cmd, 'KILL')
         self._log = open(self.log_path, 'wb')  # noqa: SIM115 (closed in stop())
         self.started_s = time.monotonic()
         self.proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdin=subprocess.DEVNULL,
