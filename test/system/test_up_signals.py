@@ -29,6 +29,19 @@ def alive(pid: int) -> bool:
         return False
 
 
+def wait_in_log(proc: subprocess.Popen, log: pathlib.Path, marker: str) -> str:
+    """The log once ``marker`` is in it (60 s at most); fails if ``deckland up`` exits first."""
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline and marker not in log.read_text():
+        assert proc.poll() is None, log.read_text()
+        time.sleep(0.1)
+    return log.read_text()
+
+
+def node_pids(text: str) -> list[int]:
+    return [int(p) for p in re.findall(r'started \w+ \(pid (\d+)\)', text)]
+
+
 @pytest.mark.parametrize('sig', [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_stops_every_child_within_5_s_cleanly_and_finishes_the_bag(tmp_path, sig):
     run = tmp_path / 'run'
@@ -38,13 +51,9 @@ def test_a_signal_stops_every_child_within_5_s_cleanly_and_finishes_the_bag(tmp_
                                  '--timeout', '60'], stdout=out, stderr=subprocess.STDOUT,
                                 env=isolated_env())
     try:
-        deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline and 'start_landing:' not in log.read_text():
-            assert proc.poll() is None, log.read_text()
-            time.sleep(0.1)
-        text = log.read_text()
+        text = wait_in_log(proc, log, 'start_landing:')
         assert 'all topics flowing' in text and 'recording' in text, text
-        pids = [int(p) for p in re.findall(r'started \w+ \(pid (\d+)\)', text)]
+        pids = node_pids(text)
         assert len(pids) == 6
         time.sleep(1.0)                       # well into the mission
         t0 = time.monotonic()
@@ -85,12 +94,8 @@ def test_a_killed_deckland_up_takes_its_nodes_with_it(tmp_path):
                                 stdout=out, stderr=subprocess.STDOUT, env=isolated_env())
     pids: list[int] = []
     try:
-        deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline and 'all topics flowing' not in log.read_text():
-            assert proc.poll() is None, log.read_text()
-            time.sleep(0.1)
-        text = log.read_text()
-        pids = [int(p) for p in re.findall(r'started \w+ \(pid (\d+)\)', text)]
+        text = wait_in_log(proc, log, 'all topics flowing')
+        pids = node_pids(text)
         assert len(pids) == 6 and all(alive(p) for p in pids), text
         proc.kill()
         proc.wait(timeout=10.0)
