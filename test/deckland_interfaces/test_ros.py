@@ -115,7 +115,10 @@ def test_bag_records_and_plays_a_custom_type(ros_context, tmp_path):
     rec2.start()
     try:
         n = bag.play(tmp_path / 'one', rate=4.0, context=context, wait_for_subscribers_s=5.0)
-        time.sleep(0.3)
+        # until the recorder has taken the last one (a fixed 0.3 s lost it under CI load)
+        end = time.monotonic() + 5.0
+        while sum(rec2.counts.values()) < n and time.monotonic() < end:
+            time.sleep(0.05)
     finally:
         rec2.stop()
     assert n == len(one)
