@@ -4,7 +4,6 @@ in time order."""
 from __future__ import annotations
 
 from collections.abc import Iterator
-import contextlib
 import os
 from pathlib import Path
 import threading
@@ -14,11 +13,9 @@ from typing import Any
 from deckland.ros import rosio
 from deckland.ros.bag.repair import ensure_readable
 
-#: how long the player stays after its last message before deleting its publishers: best-effort
-#: data has no acknowledgement to wait for, and a writer deleted right after its last write
-#: lost that write in about one run in three here (2026-12-08); reliable ones wait for the acks
+#: how long the player stays after its last message before deleting its publishers
+#: (:meth:`deckland.ros.rosio.RosSession.close`: reliable ones wait for their acks first)
 LINGER_S = 0.1
-ACK_TIMEOUT_S = 1.0
 
 
 def play(bag_dir: str | os.PathLike[str], rate: float = 1.0, topics: list[str] | None = None,
@@ -45,11 +42,11 @@ def play(bag_dir: str | os.PathLike[str], rate: float = 1.0, topics: list[str] |
     stop = stop_event or threading.Event()
     wanted = {rosio.normalize_topic(t) for t in topics} if topics else None
     published = 0
-    publishers: dict[str, Any] = {}
     session = rosio.RosSession('deckland_player', context)
     try:
         with AnyReader([bag]) as reader:
             conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+            publishers: dict[str, Any] = {}
             for c in conns:
                 if c.topic in publishers:
                     continue
@@ -91,19 +88,8 @@ def play(bag_dir: str | os.PathLike[str], rate: float = 1.0, topics: list[str] |
                 if not loop or t0_bag is None:
                     break
     finally:
-        if published:
-            _flush(publishers)
-        session.close()
+        session.close(linger_s=LINGER_S if published else 0.0)
     return published
-
-
-def _flush(publishers: dict[str, Any]) -> None:
-    """Let the last messages leave before the publishers go (see :data:`LINGER_S`)."""
-    from rclpy.duration import Duration
-    for pub in publishers.values():
-        with contextlib.suppress(Exception):       # best effort: returns at once
-            pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
-    time.sleep(LINGER_S)
 
 
 
